@@ -1,0 +1,174 @@
+"""Causal 1D convolutions with weight norm that run offline or step by step with identical results.
+
+Checkpoint layout (as the official codecs): `StreamingConv1d.conv.conv.{weight_g, weight_v, bias}`
+and `StreamingConvTranspose1d.convtr.convtr.{weight_g, weight_v, bias}`. Weight norm is kept
+unfolded: weight = weight_g * weight_v / ||weight_v||, the norm over every axis but 0 (for the
+transposed conv, axis 0 is the *input* channel). Without weight norm the parameter is `weight`.
+
+Causality: the input is left-padded with zeros by (effective kernel - stride), offline and while
+streaming (where the padding is the initial content of the carried input tail). The transposed
+conv drops its last (kernel - stride) outputs offline; streaming, it carries them as a partial sum.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from gesture.nn.streaming import StreamingModule, StreamingState
+
+
+class _WeightNormMixin:
+    """Owns `weight_g`/`weight_v` (or a plain `weight`) and folds them; caches the folded weight
+    while no gradient is needed, invalidated when either tensor is modified in place."""
+
+    def _init_weight(self, weight: torch.Tensor, weight_norm: bool) -> None:
+        self.weight_norm = weight_norm
+        if weight_norm:
+            self.weight_g = nn.Parameter(weight.flatten(1).norm(dim=1).view(-1, *[1] * (weight.dim() - 1)))
+            self.weight_v = nn.Parameter(weight.detach().clone())
+        else:
+            self.weight = nn.Parameter(weight.detach().clone())
+        self._folded: tuple[tuple, torch.Tensor] | None = None
+
+    def folded_weight(self) -> torch.Tensor:
+        if not self.weight_norm:
+            return self.weight
+        if torch.is_grad_enabled() and (self.weight_g.requires_grad or self.weight_v.requires_grad):
+            return self._fold()
+        version = (self.weight_g._version, self.weight_v._version, self.weight_v.data_ptr(), self.weight_v.dtype)
+        if self._folded is None or self._folded[0] != version:
+            with torch.no_grad():
+                self._folded = (version, self._fold())
+        return self._folded[1]
+
+    def _fold(self) -> torch.Tensor:
+        v = self.weight_v
+        norm = v.flatten(1).norm(dim=1).view(-1, *[1] * (v.dim() - 1))
+        return self.weight_g * v / norm
+
+
+class NormConv1d(nn.Module):
+    """The learnable conv (no padding): `conv` holds weight_g, weight_v and bias."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1,
+                 dilation: int = 1, bias: bool = True, weight_norm: bool = True) -> None:
+        super().__init__()
+        self.conv = _Conv1dParams(in_channels, out_channels, kernel_size, stride, dilation, bias, weight_norm)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(x)
+
+
+class _Conv1dParams(nn.Module, _WeightNormMixin):
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int, dilation: int,
+                 bias: bool, weight_norm: bool) -> None:
+        super().__init__()
+        reference = nn.Conv1d(in_channels, out_channels, kernel_size, stride, dilation=dilation, bias=bias)
+        self.stride, self.dilation, self.kernel_size = stride, dilation, kernel_size
+        self._init_weight(reference.weight, weight_norm)
+        self.bias = None if reference.bias is None else nn.Parameter(reference.bias.detach().clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.conv1d(x, self.folded_weight(), self.bias, self.stride, 0, self.dilation)
+
+
+class _ConvTranspose1dParams(nn.Module, _WeightNormMixin):
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int, bias: bool,
+                 weight_norm: bool) -> None:
+        super().__init__()
+        reference = nn.ConvTranspose1d(in_channels, out_channels, kernel_size, stride, bias=bias)
+        self.stride, self.kernel_size = stride, kernel_size
+        self._init_weight(reference.weight, weight_norm)  # (C_in, C_out, K)
+        self.bias = None if reference.bias is None else nn.Parameter(reference.bias.detach().clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.conv_transpose1d(x, self.folded_weight(), self.bias, self.stride)
+
+
+@dataclass
+class ConvState(StreamingState):
+    tail: torch.Tensor  # (B, C_in, padding): the last inputs not yet consumed, zeros at the start
+
+    def reset(self) -> None:
+        self.tail.zero_()
+
+
+class StreamingConv1d(StreamingModule[ConvState]):
+    """Causal conv1d, (B, C_in, T) -> (B, C_out, ceil(T / stride)). Offline T must be a multiple of stride."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1,
+                 dilation: int = 1, bias: bool = True, weight_norm: bool = True) -> None:
+        super().__init__()
+        self.conv = NormConv1d(in_channels, out_channels, kernel_size, stride, dilation, bias, weight_norm)
+        self.in_channels, self.stride = in_channels, stride
+        self.padding = (kernel_size - 1) * dilation + 1 - stride  # effective kernel - stride
+
+    def _init_streaming_state(self, batch_size: int) -> ConvState:
+        device, dtype = self._param_device_dtype()
+        return ConvState(batch_size, torch.zeros(batch_size, self.in_channels, self.padding, device=device, dtype=dtype))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] % self.stride:
+            raise ValueError(f"conv with stride {self.stride} needs a length multiple of it, got {x.shape[-1]}")
+        state = self._streaming_state
+        if state is None:
+            return self.conv(F.pad(x, (self.padding, 0)))
+        if self.padding == 0:
+            return self.conv(x)
+        padded = torch.cat([state.tail, x], dim=-1)  # (B, C_in, padding + T)
+        state.tail.copy_(padded[..., -self.padding:])
+        return self.conv(padded)
+
+
+@dataclass
+class ConvTrState(StreamingState):
+    partial: torch.Tensor  # (B, C_out, kernel - stride): overlap-add carried to the next call, bias excluded
+
+    def reset(self) -> None:
+        self.partial.zero_()
+
+
+class StreamingConvTranspose1d(StreamingModule[ConvTrState]):
+    """Causal transposed conv, (B, C_in, T) -> (B, C_out, T * stride)."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1,
+                 bias: bool = True, weight_norm: bool = True) -> None:
+        super().__init__()
+        if kernel_size < stride:
+            raise ValueError(f"transposed conv kernel {kernel_size} must be >= stride {stride}")
+        self.convtr = _NormConvTranspose1d(in_channels, out_channels, kernel_size, stride, bias, weight_norm)
+        self.out_channels, self.stride = out_channels, stride
+        self.overlap = kernel_size - stride
+
+    def _init_streaming_state(self, batch_size: int) -> ConvTrState:
+        device, dtype = self._param_device_dtype()
+        return ConvTrState(batch_size, torch.zeros(batch_size, self.out_channels, self.overlap, device=device, dtype=dtype))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.convtr(x)  # (B, C_out, T * stride + overlap)
+        state = self._streaming_state
+        if self.overlap == 0:
+            return y
+        if state is None:
+            return y[..., :-self.overlap]
+        y[..., :self.overlap] += state.partial
+        tail = y[..., -self.overlap:]
+        bias = self.convtr.convtr.bias
+        state.partial.copy_(tail if bias is None else tail - bias[:, None])
+        return y[..., :-self.overlap]
+
+
+class _NormConvTranspose1d(nn.Module):
+    """`convtr` holds weight_g, weight_v and bias (checkpoint name `convtr.convtr.*`)."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int, bias: bool,
+                 weight_norm: bool) -> None:
+        super().__init__()
+        self.convtr = _ConvTranspose1dParams(in_channels, out_channels, kernel_size, stride, bias, weight_norm)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.convtr(x)
