@@ -24,14 +24,19 @@ F = TypeVar("F", bound=Callable)
 _SMALL_ANGLE = 1e-6
 
 
+def _to_torch(a) -> torch.Tensor:
+    a = np.asarray(a)  # keeps 0-d arrays 0-d (np.ascontiguousarray would make them 1-d)
+    return torch.from_numpy(a if a.flags.c_contiguous and a.flags.writeable else a.copy())
+
+
 def numpy_friendly(fn: F) -> F:
     """Let ``fn`` (written for torch tensors) take and return numpy arrays too."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        if not any(isinstance(a, np.ndarray) for a in args):
+        if not any(isinstance(a, (np.ndarray, np.generic)) for a in args):
             return fn(*args, **kwargs)
-        targs = [torch.from_numpy(np.ascontiguousarray(a)) if isinstance(a, np.ndarray) else a for a in args]
+        targs = [_to_torch(a) if isinstance(a, (np.ndarray, np.generic)) else a for a in args]
         out = fn(*targs, **kwargs)
         if isinstance(out, tuple):
             return tuple(o.numpy() if isinstance(o, torch.Tensor) else o for o in out)

@@ -1,0 +1,13 @@
+"""Where the real BEAT2 test clip lives (../shared/data/beat2 beside the project root)."""
+
+from pathlib import Path
+
+import pytest
+
+BEAT2_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2"
+CLIP_ID = "2_scott_0_1_1"
+CLIP_NPZ = BEAT2_DIR / f"{CLIP_ID}.npz"
+CLIP_WAV = BEAT2_DIR / f"{CLIP_ID}.wav"
+MEAN_VEL_NPY = BEAT2_DIR / "mean_vel_smplxflame_30.npy"
+
+needs_clip = pytest.mark.skipif(not CLIP_NPZ.is_file(), reason=f"real BEAT2 clip not found at {CLIP_NPZ}")
