@@ -1,8 +1,138 @@
-"""Options of the `gesture:` section of the YAML config (placeholder: the owner of gesture/ extends it)."""
+"""Options of the `gesture:` section of the YAML config, and the gesture LM's model sizes (`LMConfig`).
 
-from dataclasses import dataclass
+`GestureConfig` is the runtime section (checkpoints, sampling, CFG, idle gate, speaker); `LMConfig` holds the
+sizes of the temporal + depth transformers and is stored inside every LM checkpoint. Codec options live in
+`gesture/codec/config.py`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+from agent.config import ConfigError
+
+N_UPPER_LEVELS = 8
+N_LOWER_LEVELS = 8
+N_FACE_LEVELS = 4
+
+
+@dataclass(frozen=True)
+class LMConfig:
+    """Sizes of the gesture language model (defaults = the reference, MIBURI-FACTS section 3)."""
+
+    d_model: int = 256
+    temporal_layers: int = 4
+    temporal_heads: int = 2
+    depth_layers: int = 2
+    depth_heads: int = 1
+    ffn_hidden: int = 672  # gated FFN: linear_in d -> 2*ffn_hidden, linear_out ffn_hidden -> d
+    self_context_steps: int = 25
+    cross_context_steps: int = 50
+    n_upper: int = N_UPPER_LEVELS
+    n_lower: int = N_LOWER_LEVELS
+    n_face: int = N_FACE_LEVELS
+    card: int = 2048  # codebook size; token `card` is pad, classifiers output card + 1 logits
+    code_dim: int = 128
+    n_speakers: int = 101
+    dropout: float = 0.01
+    rope_period: float = 10_000.0
+    mask_lower_cross_attn: bool = True  # depth queries predicting lower-body levels never see the condition
+    va_head: bool = True
+    va_use_face_logits: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("d_model", "temporal_layers", "temporal_heads", "depth_layers", "depth_heads", "ffn_hidden",
+                     "self_context_steps", "cross_context_steps", "n_upper", "card", "code_dim", "n_speakers"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"lm.{name}: must be >= 1, got {getattr(self, name)}")
+        for name in ("n_lower", "n_face"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"lm.{name}: must be >= 0, got {getattr(self, name)}")
+        for name, heads in (("temporal_heads", self.temporal_heads), ("depth_heads", self.depth_heads)):
+            if self.d_model % heads or (self.d_model // heads) % 2:
+                raise ConfigError(f"lm.{name}: d_model {self.d_model} / {heads} heads must be an even head size")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ConfigError(f"lm.dropout: must be in [0, 1), got {self.dropout}")
+        if self.va_use_face_logits and not (self.va_head and self.n_face):
+            raise ConfigError("lm.va_use_face_logits: needs va_head and n_face > 0")
+
+    @property
+    def n_levels(self) -> int:
+        return self.n_upper + self.n_lower + self.n_face
+
+    @property
+    def n_depth(self) -> int:
+        return self.n_levels - 1
+
+    @property
+    def pad_token(self) -> int:
+        return self.card
+
+    @property
+    def lower_levels(self) -> range:
+        return range(self.n_upper, self.n_upper + self.n_lower)
+
+    @property
+    def face_levels(self) -> range:
+        return range(self.n_upper + self.n_lower, self.n_levels)
+
+
+@dataclass(frozen=True)
+class IdleGateConfig:
+    """Section 5's idle gate: while the agent is silent, upper and face tokens come from recorded idle slices."""
+
+    enabled: bool = False
+    slices_dir: Optional[Path] = None  # holds idle_upper_tokens_slices.npz and idle_face_tokens_slices.npz
+    window_samples: int = 5760  # 3 steps of agent audio at 24 kHz
+    l2_threshold: float = 0.5
+    rewind_below_tokens: int = 12
+
+    def __post_init__(self) -> None:
+        if self.enabled and self.slices_dir is None:
+            raise ConfigError("gesture.idle.slices_dir: required when gesture.idle.enabled is true")
+        if self.window_samples < 1:
+            raise ConfigError(f"gesture.idle.window_samples: must be >= 1, got {self.window_samples}")
+
+
+@dataclass(frozen=True)
+class ConditionSpecConfig:
+    """The conditioning vocabulary the dialogue backend emits (filled in by the launcher from the backend)."""
+
+    name: str
+    text_vocab: int
+    audio_card: int
+    embed_dim: int
+    n_audio_codebooks: int = 8
 
 
 @dataclass(frozen=True)
 class GestureConfig:
-    pass
+    """The `gesture:` section: checkpoints, sampling, classifier-free guidance, idle gate, speaker."""
+
+    lm_checkpoint: Optional[Path] = None  # a directory written by `python -m gesture.train_lm`
+    codec_checkpoints: Optional[Path] = None  # a directory holding the three codecs (upper, lower, face)
+    temperature: float = 0.9
+    top_p_temporal: float = 0.8
+    top_p_depth: float = 0.95
+    cfg_scale: float = 1.3  # guided = null + c * (cond - null); 1.0 switches guidance off
+    speaker: int = 3
+    dtype: Literal["float32", "bfloat16"] = "bfloat16"  # weights of the step path (the reference ships bf16)
+    warmup_steps: int = 4  # silent steps run at start-up, then the state is reset
+    initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0)
+    dialogue_spec: Optional[ConditionSpecConfig] = None  # checked against the LM checkpoint's spec at start-up
+    idle: IdleGateConfig = field(default_factory=IdleGateConfig)
+
+    def __post_init__(self) -> None:
+        if self.temperature <= 0:
+            raise ConfigError(f"gesture.temperature: must be > 0, got {self.temperature}")
+        for name in ("top_p_temporal", "top_p_depth"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ConfigError(f"gesture.{name}: must be in (0, 1], got {getattr(self, name)}")
+        if self.cfg_scale < 0:
+            raise ConfigError(f"gesture.cfg_scale: must be >= 0, got {self.cfg_scale}")
+        if self.speaker < 0:
+            raise ConfigError(f"gesture.speaker: must be >= 0, got {self.speaker}")
+        if self.warmup_steps < 0:
+            raise ConfigError(f"gesture.warmup_steps: must be >= 0, got {self.warmup_steps}")
