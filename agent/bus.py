@@ -1,0 +1,127 @@
+"""ZeroMQ PUB/SUB with typed messages: one publisher per process, subscribers to upstream processes.
+
+Live mode keeps a bounded queue per subscriber that drops the oldest message and counts it.
+Offline mode queues without limit in ZeroMQ; the source's credit window (see agent.stage) bounds what is in flight.
+Every subscriber also counts messages lost upstream (gaps in a publisher's per-topic sequence numbers)
+and frames it could not decode; a bad frame is logged and skipped.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+from pathlib import Path
+from typing import Iterable
+
+import zmq
+
+from agent.messages import Control, DecodeError, Message, MsgpackSerializer, Serializer
+from agent.sections import STAGES, BusConfig
+
+log = logging.getLogger(__name__)
+
+IPC_PATH_MAX = 100  # bytes of a Unix socket path (the OS limit is 107)
+LIVE_HWM = 1000  # ZeroMQ's own queue in live mode; our bounded deque does the dropping
+
+
+def stage_address(stage: str, bus: BusConfig, ipc_dir: Path) -> str:
+    """The address `stage` publishes on (and its subscribers connect to)."""
+    if stage in bus.endpoints:
+        return bus.endpoints[stage]
+    if bus.transport == "tcp":
+        index = (*STAGES, "supervisor", "dashboard").index(stage)
+        return f"tcp://{bus.host}:{bus.base_port + index}"
+    path = str(Path(ipc_dir) / f"{stage}.sock")
+    if len(path.encode()) > IPC_PATH_MAX:
+        raise ValueError(f"ipc path too long for a Unix socket ({len(path)} bytes): {path}")
+    return f"ipc://{path}"
+
+
+class Publisher:
+    """Binds one PUB socket and numbers each topic's messages (`seq`), so receivers can count losses."""
+
+    def __init__(self, ctx: zmq.Context, address: str, source: str, *, lossless: bool,
+                 serializer: Serializer | None = None):
+        self.source = source
+        self.serializer = serializer or MsgpackSerializer()
+        self.socket = ctx.socket(zmq.PUB)
+        self.socket.setsockopt(zmq.SNDHWM, 0 if lossless else LIVE_HWM)
+        self.socket.setsockopt(zmq.LINGER, 500)
+        self.socket.bind(address)
+        self._seq: dict[str, int] = collections.defaultdict(int)
+
+    def send(self, msg: Message) -> None:
+        msg.source = self.source
+        msg.seq = self._seq[msg.topic]
+        self._seq[msg.topic] += 1
+        self.socket.send_multipart(self.serializer.encode(msg), copy=False)
+
+    def close(self) -> None:
+        self.socket.close()
+
+
+class Subscriber:
+    """One SUB socket connected to several publishers, decoding into typed messages.
+
+    Control messages go to their own queue, which is never dropped. A publisher's messages arrive in the
+    order it sent them, so when its EOS is taken from `controls`, all its data is already in `queue`.
+    """
+
+    def __init__(self, ctx: zmq.Context, addresses: Iterable[str], topics: Iterable[str], *,
+                 live_queue: int | None, serializer: Serializer | None = None):
+        self.serializer = serializer or MsgpackSerializer()
+        self.socket = ctx.socket(zmq.SUB)
+        self.socket.setsockopt(zmq.RCVHWM, LIVE_HWM if live_queue else 0)
+        self.socket.setsockopt(zmq.LINGER, 0)
+        for topic in topics:
+            self.socket.setsockopt(zmq.SUBSCRIBE, topic.encode())
+        for address in addresses:
+            self.socket.connect(address)
+        self.queue: collections.deque[Message] = collections.deque()  # data, in arrival order
+        self.controls: collections.deque[Control] = collections.deque()  # never dropped
+        self.live_queue = live_queue
+        self.dropped = 0  # dropped here, oldest first, because the consumer fell behind (live mode)
+        self.lost = 0  # never arrived: gaps in the publishers' sequence numbers
+        self.decode_errors = 0
+        self._next_seq: dict[tuple[str, str], int] = {}
+
+    def poll_into_queue(self) -> int:
+        """Move every frame ZeroMQ holds into the queue; return how many messages arrived."""
+        arrived = 0
+        while True:
+            try:
+                frames = self.socket.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return arrived
+            msg = self._decode([f.buffer for f in frames])
+            if msg is not None:
+                self._count_gap(msg)
+                self._enqueue(msg)
+                arrived += 1
+
+    def _decode(self, frames) -> Message | None:
+        try:
+            return self.serializer.decode(frames)
+        except DecodeError as e:
+            self.decode_errors += 1
+            log.warning("skipped a malformed frame on topic %r: %s", bytes(frames[0])[:40], e)
+            return None
+
+    def _count_gap(self, msg: Message) -> None:
+        key = (msg.source, msg.topic)
+        expected = self._next_seq.get(key)
+        if expected is not None and msg.seq > expected:
+            self.lost += msg.seq - expected
+        self._next_seq[key] = msg.seq + 1
+
+    def _enqueue(self, msg: Message) -> None:
+        if isinstance(msg, Control):
+            self.controls.append(msg)
+            return
+        if self.live_queue and len(self.queue) >= self.live_queue:
+            self.queue.popleft()
+            self.dropped += 1
+        self.queue.append(msg)
+
+    def close(self) -> None:
+        self.socket.close()

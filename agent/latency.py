@@ -1,0 +1,117 @@
+"""End-to-end and per-stage latency from the stamps the stages add to each message header.
+
+The end-to-end latency of a step is `sink stamp of the step's last frame − t_origin_ns` (the capture time of
+the step's last audio sample). Each stage's share is split into `wait` (transport and queueing since the
+previous stage published) and `compute` (from taking the message to publishing the result).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from agent.messages import Metrics
+from agent.timing import FRAMES_PER_STEP
+
+PERCENTILES = (50, 95, 99)
+NS_PER_MS = 1e6
+
+
+def percentiles(values: Sequence[float]) -> dict[str, float]:
+    if len(values) == 0:
+        return {"n": 0}
+    a = np.asarray(values, dtype=np.float64)
+    out = {f"p{p}": round(float(np.percentile(a, p)), 3) for p in PERCENTILES}
+    out.update(max=round(float(a.max()), 3), mean=round(float(a.mean()), 3), n=int(a.size))
+    return out
+
+
+class LatencyRecorder:
+    def __init__(self, pipeline: Sequence[str]):
+        self.pipeline = tuple(pipeline)
+        self.steps: list[int] = []
+        self.e2e_ms: list[float] = []
+        self.segments_ms: dict[str, dict[str, list[float]]] = {
+            s: {"wait": [], "compute": [], "total": []} for s in self.pipeline}
+
+    def add(self, msg: Metrics, offsets_ns: dict[str, int]) -> None:
+        """Record one sink output, if it is its step's last frame; stamps are moved to the supervisor clock."""
+        if self.pipeline[-1] == "render" and msg.values.get("frame_index", 0) != FRAMES_PER_STEP - 1:
+            return
+        stamps = {key: t - offsets_ns.get(key.split(".")[0], 0) for key, t in msg.stamps.items()}
+        if any(s not in stamps for s in self.pipeline):
+            return
+        origin = msg.t_origin_ns - offsets_ns.get(self.pipeline[0], 0)
+        self.steps.append(msg.step)
+        self.e2e_ms.append((stamps[self.pipeline[-1]] - origin) / NS_PER_MS)
+        previous = origin
+        for stage in self.pipeline:
+            taken = stamps.get(f"{stage}.in", previous)
+            seg = self.segments_ms[stage]
+            seg["wait"].append((taken - previous) / NS_PER_MS)
+            seg["compute"].append((stamps[stage] - taken) / NS_PER_MS)
+            seg["total"].append((stamps[stage] - previous) / NS_PER_MS)
+            previous = stamps[stage]
+
+    def summary(self, counters: dict[str, dict], clock: dict[str, dict]) -> dict:
+        mean_e2e = float(np.mean(self.e2e_ms)) if self.e2e_ms else float("nan")
+        stages = {}
+        for stage, seg in self.segments_ms.items():
+            stages[stage] = {name: percentiles(values) for name, values in seg.items()}
+            stages[stage]["share"] = round(float(np.mean(seg["total"])) / mean_e2e, 4) if self.e2e_ms else None
+        return {"steps_measured": len(self.e2e_ms), "end_to_end_ms": percentiles(self.e2e_ms), "stages": stages,
+                "counters": counters, "clock_offsets": clock}
+
+    def write(self, run_dir: Path, counters: dict[str, dict], clock: dict[str, dict]) -> dict:
+        summary = self.summary(counters, clock)
+        (run_dir / "latency.json").write_text(json.dumps(summary, indent=2))
+        if self.e2e_ms:
+            self._plot(run_dir / "latency.png")
+        return summary
+
+    def _plot(self, path: Path) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, (timeline, hist) = plt.subplots(2, 1, figsize=(10, 7))
+        bottom = np.zeros(len(self.e2e_ms))
+        for stage, seg in self.segments_ms.items():
+            total = np.asarray(seg["total"])
+            timeline.fill_between(self.steps, bottom, bottom + total, step="mid", alpha=0.7, label=stage)
+            bottom += total
+        timeline.plot(self.steps, self.e2e_ms, color="k", lw=0.8, label="end to end")
+        timeline.set(xlabel="step (80 ms)", ylabel="ms", title="Latency per step, stacked by stage")
+        timeline.legend(loc="upper right", fontsize=8)
+        hist.hist(self.e2e_ms, bins=60, color="tab:blue")
+        for p in PERCENTILES:
+            hist.axvline(np.percentile(self.e2e_ms, p), color="k", ls="--", lw=0.8)
+        hist.set(xlabel="end-to-end latency (ms); dashed: p50, p95, p99", ylabel="steps")
+        fig.tight_layout()
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+
+
+def format_table(summary: dict) -> str:
+    """A short table for the terminal."""
+    rows = [("stage", "p50 ms", "p95 ms", "p99 ms", "max ms", "share", "dropped", "lost")]
+    for stage, stats in summary["stages"].items():
+        total = stats["total"]
+        c = summary["counters"].get(stage, {})
+        rows.append((stage, *(_fmt(total.get(k)) for k in ("p50", "p95", "p99", "max")),
+                     _fmt(stats["share"]), str(c.get("dropped", 0) + c.get("frames_dropped", 0)), str(c.get("lost", 0))))
+    e2e = summary["end_to_end_ms"]
+    rows.append(("end to end", *(_fmt(e2e.get(k)) for k in ("p50", "p95", "p99", "max")), "1", "", ""))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+             for r in rows]
+    lines.insert(1, "-" * len(lines[0]))
+    return "\n".join(lines) + f"\n({summary['steps_measured']} steps measured)"
+
+
+def _fmt(value) -> str:
+    return "-" if value is None else f"{value:.2f}" if isinstance(value, float) else str(value)

@@ -1,0 +1,100 @@
+"""The entry point of every stage process: environment, signals, log file, component, runner."""
+
+from __future__ import annotations
+
+import ctypes
+import importlib
+import logging
+import os
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from agent.sections import AppConfig
+from agent.stage import RunContext, StageRunner, Topology
+
+COMPONENT_FACTORIES = {
+    "io": "agent.io.process:create_component",
+    "dialogue": "dialogue.process:create_component",
+    "gesture": "gesture.process:create_component",
+    "render": "render.process:create_component",
+}
+EXIT_STARTUP_FAILED = 3
+PR_SET_PDEATHSIG = 1
+
+
+@dataclass(frozen=True)
+class StageLaunch:
+    """Everything a stage process needs; picklable for multiprocessing spawn."""
+
+    stage: str
+    pipeline: tuple[str, ...]
+    app: AppConfig
+    run: RunContext
+    ipc_dir: Path
+    factory: str  # "module:function" taking (section config, RunContext)
+
+    @property
+    def log_path(self) -> Path:
+        return self.run.run_dir / f"{self.stage}.log"
+
+
+def limit_threads() -> None:
+    """One BLAS/torch thread per process: the machine has 2 cores and rendering needs most of them."""
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def load_factory(path: str) -> Callable[..., Any]:
+    module, _, attr = path.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+def stage_main(launch: StageLaunch) -> None:
+    """Run one stage until STOP, SIGTERM or the end of the stream."""
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the supervisor decides
+    _redirect_output(launch.log_path)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format=f"%(asctime)s {launch.stage} %(levelname)s %(name)s: %(message)s")
+    limit_threads()
+    log = logging.getLogger(launch.stage)
+    try:
+        section = getattr(launch.app, launch.stage)
+        component, source = _split(load_factory(launch.factory)(section, launch.run))
+        topology = Topology.of(launch.stage, launch.pipeline, speaker=launch.app.io.speaker)
+        runner = StageRunner(topology, launch.app, launch.run, launch.ipc_dir, component, source)
+    except Exception:
+        log.exception("failed to start")
+        sys.exit(EXIT_STARTUP_FAILED)
+    signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
+    runner.run()
+    log.info("stopped")
+
+
+def _split(made: Any) -> tuple[Any, Any]:
+    """A factory returns a component, or (component, source) for the io stage."""
+    return made if isinstance(made, tuple) else (made, None)
+
+
+def _die_with_parent() -> None:
+    """Linux: get SIGTERM when the supervisor dies, so no stage is ever orphaned."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def _redirect_output(path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)
+    sys.stderr = open(2, "w", buffering=1, closefd=False)

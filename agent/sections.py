@@ -1,0 +1,118 @@
+"""The top-level config: one frozen dataclass per YAML section, and the loader with `--set` overrides."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional, Sequence
+
+from agent.config import ConfigError, apply_override, build_dataclass, load_yaml, parse_override
+from dialogue.config import DialogueConfig
+from gesture.config import GestureConfig
+from render.config import RenderConfig
+
+STAGES = ("io", "dialogue", "gesture", "render")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """Where each process publishes, and how the bus behaves.
+
+    `transport: ipc` binds `ipc://<private run dir>/<stage>.sock`; `tcp` binds `tcp://<host>:<base_port + i>`.
+    `endpoints` pins a stage to an explicit address (`tcp://gpu-box:5601`) to split the loop across hosts.
+    """
+
+    transport: Literal["ipc", "tcp"] = "ipc"
+    host: str = "127.0.0.1"
+    base_port: int = 5600
+    endpoints: dict[str, str] = field(default_factory=dict)
+    live_queue_steps: int = 4
+    credit_window_steps: int = 32
+    heartbeat_s: float = 0.25
+    heartbeat_timeout_s: float = 5.0
+    ready_timeout_s: float = 180.0
+    stop_timeout_s: float = 1.5
+
+    def __post_init__(self):
+        for name in ("live_queue_steps", "credit_window_steps"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"bus.{name}: must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.heartbeat_s < self.heartbeat_timeout_s:
+            raise ConfigError("bus.heartbeat_s: must be > 0 and below bus.heartbeat_timeout_s")
+        unknown = sorted(set(self.endpoints) - set(STAGES) - {"supervisor", "dashboard"})
+        if unknown:
+            raise ConfigError(f"bus.endpoints.{unknown[0]}: unknown stage (stages: {', '.join(STAGES)})")
+        for stage, address in self.endpoints.items():
+            if not address.startswith(("tcp://", "ipc://")):
+                raise ConfigError(f"bus.endpoints.{stage}: expected tcp://host:port or ipc://path, got {address!r}")
+
+
+@dataclass(frozen=True)
+class IoConfig:
+    """The user's side: where the user's audio comes from and whether the agent is heard."""
+
+    source: Literal["mic", "replay", "silence"] = "replay"
+    replay_path: Optional[str] = None
+    tail_silence_s: float = 6.0  # after a replay, so the agent can answer the last words
+    silence_s: float = 10.0  # length of a `silence` source
+    speaker: bool = False
+    input_device: Optional[str] = None
+    output_device: Optional[str] = None
+
+    def __post_init__(self):
+        if self.tail_silence_s < 0:
+            raise ConfigError(f"io.tail_silence_s: must be >= 0, got {self.tail_silence_s}")
+
+
+@dataclass(frozen=True)
+class DashboardConfig:
+    enabled: bool = True
+    host: str = "127.0.0.1"
+    port: int = 8998
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """How the run is paced, which stages run, and where it reports.
+
+    `components` replaces a stage's component factory (`stage: "module:function"`, called with the stage's
+    section config and the RunContext), to plug in your own dialogue system, generator or renderer.
+    """
+
+    live: bool = True
+    seed: int = 0
+    report_dir: Optional[str] = None  # default: runs/<time>/
+    stages: tuple[str, ...] = STAGES
+    components: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not self.stages or self.stages[0] != "io" or list(self.stages) != [s for s in STAGES if s in self.stages]:
+            raise ConfigError(f"run.stages: must start with io and keep the order {', '.join(STAGES)}; "
+                              f"got {list(self.stages)}")
+        for stage, factory in self.components.items():
+            if stage not in STAGES:
+                raise ConfigError(f"run.components.{stage}: unknown stage (stages: {', '.join(STAGES)})")
+            if ":" not in factory:
+                raise ConfigError(f"run.components.{stage}: expected 'module:function', got {factory!r}")
+
+    def resolve_report_dir(self, now: str) -> Path:
+        return Path(self.report_dir) if self.report_dir else Path("runs") / now
+
+
+@dataclass(frozen=True)
+class AppConfig:
+    run: RunConfig = field(default_factory=RunConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    io: IoConfig = field(default_factory=IoConfig)
+    dialogue: DialogueConfig = field(default_factory=DialogueConfig)
+    gesture: GestureConfig = field(default_factory=GestureConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    dashboard: DashboardConfig = field(default_factory=DashboardConfig)
+
+
+def load_app_config(path: Path | str, overrides: Sequence[str] = ()) -> AppConfig:
+    """Read a YAML file, apply `section.key=value` overrides, and build the frozen config."""
+    tree = load_yaml(Path(path))
+    for text in overrides:
+        apply_override(tree, *parse_override(text))
+    return build_dataclass(AppConfig, tree)

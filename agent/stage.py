@@ -1,0 +1,283 @@
+"""The generic stage process: sockets, readiness handshake, heartbeats, stamps, drops, credits, end of stream.
+
+A stage supplies a `Component` (and the io stage also a `Source`). The runner:
+- subscribes to its upstream stages' data topics and everyone's `control`;
+- reports READY in its heartbeats once it has heard every upstream publisher and the supervisor, so ZeroMQ's
+  late-joiner loss can never eat the first step; the source starts only on the supervisor's START;
+- copies step, t_origin_ns and stamps from each input to its outputs and stamps `<stage>.in` / `<stage>`;
+- in offline mode, lets the source run at most `credit_window_steps` ahead of the sink;
+- logs and skips a message whose handler raises, and carries on.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Protocol, Sequence
+
+import numpy as np
+import zmq
+
+from agent.bus import Publisher, Subscriber, stage_address
+from agent.messages import AudioUser, Command, Control, Message, Metrics, StageState
+from agent.sections import AppConfig
+from agent.timing import STEP_NS
+
+log = logging.getLogger(__name__)
+
+OUTPUT_TOPIC = {"io": "audio.user", "dialogue": "dialogue.step", "gesture": "gesture.step",
+                "render": "render.frame"}
+DATA_INPUTS = {  # stage -> {upstream stage: topic}; the io stage's speaker input is added when enabled
+    "dialogue": {"io": "audio.user"},
+    "gesture": {"dialogue": "dialogue.step"},
+    "render": {"dialogue": "dialogue.step", "gesture": "gesture.step"},
+}
+SUPERVISOR = "supervisor"
+MAX_POLL_MS = 50
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """What a component may know about the run."""
+
+    run_dir: Path
+    live: bool
+    seed: int
+    session: str
+
+
+class Component(Protocol):
+    def handle(self, msg: Message) -> Sequence[Message]: ...
+
+    def flush(self) -> Sequence[Message]: ...
+
+    def close(self) -> None: ...
+
+
+class Source(Protocol):
+    """Blocks of user audio. `paced` sources (a microphone) deliver in real time by themselves."""
+
+    paced: bool
+
+    def next_block(self, timeout_s: float) -> Optional[tuple[np.ndarray, Optional[int]]]:
+        """(pcm (1920,) float32, capture time of its last sample in monotonic ns or None); None when waiting."""
+
+    @property
+    def exhausted(self) -> bool: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Topology:
+    """Who this stage listens to, derived from the run's pipeline."""
+
+    stage: str
+    pipeline: tuple[str, ...]
+    data_inputs: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, stage: str, pipeline: Sequence[str], speaker: bool = False) -> "Topology":
+        inputs = {up: topic for up, topic in DATA_INPUTS.get(stage, {}).items() if up in pipeline}
+        if stage == "io" and speaker and "dialogue" in pipeline:
+            inputs["dialogue"] = "dialogue.step"
+        return cls(stage, tuple(pipeline), inputs)
+
+    @property
+    def sink(self) -> str:
+        return self.pipeline[-1]
+
+    @property
+    def sink_primary_topic(self) -> Optional[str]:
+        return OUTPUT_TOPIC[self.pipeline[-2]] if len(self.pipeline) > 1 else None
+
+    @property
+    def peers(self) -> set[str]:
+        """Publishers this stage must hear before it is ready."""
+        peers = set(self.data_inputs) | {SUPERVISOR}
+        if self.stage == "io" and self.sink != "io":
+            peers.add(self.sink)  # the sink's PROGRESS drives the offline credit window
+        return peers
+
+
+class StageRunner:
+    def __init__(self, topology: Topology, app: AppConfig, run: RunContext, ipc_dir: Path,
+                 component: Component, source: Optional[Source] = None):
+        self.name = topology.stage
+        self.topology = topology
+        self.bus = app.bus
+        self.run_ctx = run
+        self.component = component
+        self.source = source
+        self.ctx = zmq.Context.instance()
+        self.pub = Publisher(self.ctx, stage_address(self.name, self.bus, ipc_dir), self.name,
+                             lossless=not run.live)
+        topics = ["control", *set(topology.data_inputs.values())]
+        addresses = [stage_address(peer, self.bus, ipc_dir) for peer in sorted(topology.peers)]
+        self.sub = Subscriber(self.ctx, addresses, topics,
+                              live_queue=self.bus.live_queue_steps * 2 if run.live else None)
+        self.state = StageState.STARTING
+        self.heard: set[str] = set()
+        self.eos_from: set[str] = set()
+        self.started = False
+        self.stopping = False
+        self.handler_errors = 0
+        self.handled = 0
+        self.next_step = 0
+        self.source_t0_ns = 0
+        self.sink_progress = -1
+        self._next_heartbeat_ns = 0
+
+    # ---- main loop -------------------------------------------------------------------------------------------
+    def run(self) -> None:
+        try:
+            while not self.stopping:
+                self._poll(self._poll_timeout_ms())
+                self._take_controls()
+                if self.started and self.source is not None and self.state != StageState.DONE:
+                    self._emit_source()
+                if self.sub.queue:
+                    self._handle(self.sub.queue.popleft())
+                self._check_end_of_stream()
+                self._heartbeat()
+        finally:
+            self._close()
+
+    def request_stop(self) -> None:
+        self.stopping = True
+
+    def _poll(self, timeout_ms: int) -> None:
+        if self.sub.queue and timeout_ms > 0:
+            timeout_ms = 0
+        if self.sub.socket.poll(timeout_ms, zmq.POLLIN):
+            self.sub.poll_into_queue()
+        if os.getppid() == 1:  # the supervisor died without stopping us
+            log.error("supervisor is gone; stopping")
+            self.stopping = True
+
+    def _poll_timeout_ms(self) -> int:
+        if self.source is not None and self.started and self.state != StageState.DONE:
+            return 0 if self.source.paced else min(MAX_POLL_MS, max(0, self._due_in_ms()))
+        return MAX_POLL_MS
+
+    # ---- control ---------------------------------------------------------------------------------------------
+    def _take_controls(self) -> None:
+        while self.sub.controls:
+            msg = self.sub.controls.popleft()
+            self.heard.add(msg.source)
+            if msg.source == SUPERVISOR:
+                self._supervisor_command(msg)
+            elif msg.command == Command.EOS and msg.source in self.topology.data_inputs:
+                self.eos_from.add(msg.source)
+            elif msg.command == Command.PROGRESS and msg.source == self.topology.sink:
+                self.sink_progress = max(self.sink_progress, msg.detail["step"])
+        if self.state == StageState.STARTING and self.heard >= self.topology.peers:
+            self.state = StageState.READY
+            self._next_heartbeat_ns = 0
+            log.info("ready")
+
+    def _supervisor_command(self, msg: Control) -> None:
+        if msg.command == Command.START and self.state == StageState.READY:
+            self.state = StageState.RUNNING
+            self.started = True
+            self.source_t0_ns = time.monotonic_ns()
+        elif msg.command == Command.STOP:
+            self.stopping = True
+        elif msg.command == Command.PING and msg.detail.get("to") == self.name:
+            t1 = time.monotonic_ns()
+            self.pub.send(Control(command=Command.PONG, detail={**msg.detail, "t1": t1, "t2": time.monotonic_ns()}))
+
+    def _heartbeat(self) -> None:
+        now = time.monotonic_ns()
+        if now < self._next_heartbeat_ns:
+            return
+        self._next_heartbeat_ns = now + int(self.bus.heartbeat_s * 1e9)
+        self.pub.send(Control(command=Command.HEARTBEAT, detail={"state": self.state.value,
+                                                                 "counters": self.counters()}))
+
+    def counters(self) -> dict[str, int]:
+        counters = {"dropped": self.sub.dropped, "lost": self.sub.lost, "decode_errors": self.sub.decode_errors,
+                    "handler_errors": self.handler_errors, "handled": self.handled, "sent_steps": self.next_step}
+        extra = getattr(self.component, "counters", None)
+        if callable(extra):
+            counters.update(extra())
+        return counters
+
+    # ---- data ------------------------------------------------------------------------------------------------
+    def _handle(self, msg: Message) -> None:
+        msg.stamps[f"{self.name}.in"] = time.monotonic_ns()
+        self.handled += 1
+        try:
+            outputs = self.component.handle(msg)
+        except Exception:
+            self.handler_errors += 1
+            log.exception("handler failed on %s step %d from %s; skipped", msg.topic, msg.step, msg.source)
+            return
+        for out in outputs:
+            out.session, out.step, out.t_origin_ns = self.run_ctx.session, msg.step, msg.t_origin_ns
+            out.stamps = {**msg.stamps, self.name: time.monotonic_ns()}
+            self._publish(out)
+        if self.name == self.topology.sink and msg.topic == self.topology.sink_primary_topic:
+            self.pub.send(Control(command=Command.PROGRESS, detail={"step": msg.step}))
+
+    def _publish(self, out: Message) -> None:
+        self.pub.send(out)
+        if self.name == self.topology.sink:
+            frame_index = getattr(out, "frame_index", 0)
+            self.pub.send(Metrics(session=out.session, step=out.step, t_origin_ns=out.t_origin_ns,
+                                  stamps=out.stamps, values={"frame_index": float(frame_index)}))
+
+    def _check_end_of_stream(self) -> None:
+        if self.state != StageState.RUNNING or self.source is not None:
+            return
+        if self.eos_from >= set(self.topology.data_inputs) and not self.sub.queue:
+            self._finish()
+
+    def _finish(self) -> None:
+        for out in self.component.flush():
+            out.session = self.run_ctx.session
+            out.stamps = {**out.stamps, self.name: time.monotonic_ns()}
+            self._publish(out)
+        self.state = StageState.DONE
+        self.pub.send(Control(command=Command.EOS, detail=self.counters()))
+        self._next_heartbeat_ns = 0
+        log.info("end of stream")
+
+    # ---- source (the io stage) -------------------------------------------------------------------------------
+    def _due_in_ms(self) -> int:
+        due_ns = self.source_t0_ns + (self.next_step + 1) * STEP_NS
+        return (due_ns - time.monotonic_ns()) // 1_000_000 if self.run_ctx.live else 0
+
+    def _emit_source(self) -> None:
+        if self.source.exhausted:
+            self._finish()
+            return
+        if not self.run_ctx.live and self.next_step - self.sink_progress > self.bus.credit_window_steps:
+            return
+        if not self.source.paced and self._due_in_ms() > 0:
+            return
+        block = self.source.next_block(timeout_s=0.005 if self.source.paced else 0.0)
+        if block is None:
+            return
+        pcm, captured_ns = block
+        if captured_ns is None:
+            captured_ns = (self.source_t0_ns + (self.next_step + 1) * STEP_NS) if self.run_ctx.live \
+                else time.monotonic_ns()
+        msg = AudioUser(session=self.run_ctx.session, step=self.next_step, t_origin_ns=captured_ns, pcm=pcm)
+        msg.stamps = {self.name: time.monotonic_ns()}
+        self._publish(msg)
+        self.next_step += 1
+
+    def _close(self) -> None:
+        try:
+            self.component.close()
+        finally:
+            if self.source is not None:
+                self.source.close()
+            self.state = StageState.DONE
+            self.pub.send(Control(command=Command.HEARTBEAT, detail={"state": "done", "counters": self.counters()}))
+            self.pub.close()
+            self.sub.close()

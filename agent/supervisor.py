@@ -1,0 +1,207 @@
+"""Starts every stage as its own OS process, watches them, and stops them all, cleanly and fast.
+
+Startup: spawn, wait until every stage reports READY (it has heard all its publishers), measure each stage's
+clock offset (NTP-style PING/PONG), then START. Running: collect heartbeats, latency samples and counters.
+A stage that dies or stops beating ends the run with its name, exit code and the tail of its log.
+Stop: STOP on the bus, then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the private ipc
+directory is removed.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import shutil
+import signal
+import tempfile
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import zmq
+
+from agent.bus import Publisher, Subscriber, stage_address
+from agent.clock import ClockSync
+from agent.latency import LatencyRecorder
+from agent.messages import Command, Control, Log, Metrics
+from agent.process import COMPONENT_FACTORIES, StageLaunch, stage_main
+from agent.sections import AppConfig
+from agent.stage import SUPERVISOR, RunContext
+
+log = logging.getLogger("supervisor")
+
+LOG_TAIL_LINES = 12
+KILL_GRACE_S = 0.5
+
+
+class RunFailed(RuntimeError):
+    pass
+
+
+@dataclass
+class StageStatus:
+    process: mp.Process
+    state: str = "starting"
+    last_beat_s: float = field(default_factory=time.monotonic)
+    counters: dict = field(default_factory=dict)
+
+
+class Supervisor:
+    def __init__(self, app: AppConfig, run: RunContext):
+        self.app, self.run_ctx, self.pipeline = app, run, tuple(app.run.stages)
+        self.factories = {**COMPONENT_FACTORIES, **app.run.components}
+        self.ipc_dir = Path(tempfile.mkdtemp(prefix="ecas-"))
+        self.stages: dict[str, StageStatus] = {}
+        self.latency = LatencyRecorder(self.pipeline)
+        self.clock = ClockSync()
+        self.interrupted = False
+        self.error: Optional[str] = None
+        self.sink_done = False
+
+    # ---- lifecycle -------------------------------------------------------------------------------------------
+    def run(self) -> int:
+        """0 when the stream ended, 130 when interrupted, 1 when a stage failed."""
+        previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+        ctx = zmq.Context.instance()
+        self.pub = Publisher(ctx, stage_address(SUPERVISOR, self.app.bus, self.ipc_dir), SUPERVISOR,
+                             lossless=True)
+        addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
+        self.sub = Subscriber(ctx, addresses, ["control", "metrics", "log"], live_queue=None)
+        try:
+            self._spawn()
+            self._wait_ready()
+            self._sync_clocks()
+            self._send(Command.START)
+            log.info("started: %s", " → ".join(self.pipeline))
+            self._watch()
+        except RunFailed as e:
+            self.error = str(e)
+        finally:
+            self._stop_all()
+            self.pub.close()
+            self.sub.close()
+            shutil.rmtree(self.ipc_dir, ignore_errors=True)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if self.error:
+            log.error("%s", self.error)
+            return 1
+        return 130 if self.interrupted else 0
+
+    def _on_signal(self, signum, _frame) -> None:
+        self.interrupted = True
+
+    def _spawn(self) -> None:
+        ctx = mp.get_context("spawn")
+        for stage in self.pipeline:
+            launch = StageLaunch(stage, self.pipeline, self.app, self.run_ctx, self.ipc_dir, self.factories[stage])
+            process = ctx.Process(target=stage_main, args=(launch,), name=f"stage-{stage}", daemon=False)
+            process.start()
+            self.stages[stage] = StageStatus(process)
+
+    # ---- phases ----------------------------------------------------------------------------------------------
+    def _wait_ready(self) -> None:
+        deadline = time.monotonic() + self.app.bus.ready_timeout_s
+        while not all(s.state == "ready" for s in self.stages.values()):
+            self._tick()
+            if self.interrupted:
+                return
+            if time.monotonic() > deadline:
+                late = [n for n, s in self.stages.items() if s.state != "ready"]
+                raise RunFailed(f"stage(s) {', '.join(late)} not ready after {self.app.bus.ready_timeout_s:.0f} s"
+                                f"; see {self.run_ctx.run_dir}/<stage>.log")
+
+    def _sync_clocks(self, rounds: int = 5) -> None:
+        for _ in range(rounds):
+            for stage in self.pipeline:
+                self._send(Command.PING, {"to": stage, "t0": time.monotonic_ns()})
+            self._tick(0.02)
+
+    def _watch(self) -> None:
+        while not (self.interrupted or self.sink_done):
+            self._tick()
+
+    def _tick(self, duration_s: float = 0.05) -> None:
+        """Beat, receive for up to `duration_s`, and check every process."""
+        self._send(Command.HEARTBEAT)
+        end = time.monotonic() + duration_s
+        while True:
+            remaining_ms = int(max(0.0, end - time.monotonic()) * 1000)
+            if self.sub.socket.poll(remaining_ms, zmq.POLLIN):
+                self.sub.poll_into_queue()
+            self._consume()
+            if time.monotonic() >= end:
+                break
+        self._check_processes()
+
+    def _consume(self) -> None:
+        while self.sub.controls:
+            self._on_control(self.sub.controls.popleft())
+        while self.sub.queue:
+            msg = self.sub.queue.popleft()
+            if isinstance(msg, Metrics):
+                self.latency.add(msg, self.clock.offsets_ns())
+            elif isinstance(msg, Log):
+                log.log(logging.getLevelName(msg.level.upper()), "[%s] %s", msg.source, msg.text)
+
+    def _on_control(self, msg: Control) -> None:
+        status = self.stages.get(msg.source)
+        if status is None:
+            return
+        status.last_beat_s = time.monotonic()
+        if msg.command == Command.HEARTBEAT:
+            status.state = msg.detail.get("state", status.state)
+            status.counters = msg.detail.get("counters", status.counters)
+        elif msg.command == Command.PONG:
+            self.clock.add(msg.source, msg.detail["t0"], msg.detail["t1"], msg.detail["t2"], time.monotonic_ns())
+        elif msg.command == Command.EOS:
+            status.counters = msg.detail
+            if msg.source == self.pipeline[-1]:
+                self.sink_done = True
+
+    def _check_processes(self) -> None:
+        now = time.monotonic()
+        for name, status in self.stages.items():
+            code = status.process.exitcode
+            if code is not None:
+                raise RunFailed(f"stage '{name}' died (exit code {code}). Last lines of its log:\n"
+                                f"{_tail(self.run_ctx.run_dir / f'{name}.log')}")
+            if status.state != "starting" and now - status.last_beat_s > self.app.bus.heartbeat_timeout_s:
+                raise RunFailed(f"stage '{name}' stopped responding (no heartbeat for "
+                                f"{now - status.last_beat_s:.1f} s)")
+
+    # ---- stopping --------------------------------------------------------------------------------------------
+    def _send(self, command: Command, detail: Optional[dict] = None) -> None:
+        self.pub.send(Control(command=command, detail=detail or {}))
+
+    def _stop_all(self) -> None:
+        deadline = time.monotonic() + self.app.bus.stop_timeout_s
+        self._send(Command.STOP)
+        alive = lambda: [s.process for s in self.stages.values() if s.process.is_alive()]  # noqa: E731
+        while alive() and time.monotonic() < deadline:
+            self.sub.socket.poll(20, zmq.POLLIN) and self.sub.poll_into_queue()
+            self._consume()
+            self._send(Command.STOP)
+        for process in alive():
+            process.terminate()
+        kill_at = time.monotonic() + KILL_GRACE_S
+        for process in alive():
+            process.join(max(0.0, kill_at - time.monotonic()))
+        for process in alive():
+            process.kill()
+            process.join(1.0)
+        self.sub.poll_into_queue()
+        self._consume()
+
+    def counters(self) -> dict[str, dict]:
+        return {name: status.counters for name, status in self.stages.items()}
+
+
+def _tail(path: Path, lines: int = LOG_TAIL_LINES) -> str:
+    try:
+        text = path.read_text(errors="replace").splitlines()
+    except FileNotFoundError:
+        return "    (no log written)"
+    return "\n".join("    " + line for line in (deque(text, maxlen=lines) or ["(empty log)"]))

@@ -1,0 +1,114 @@
+"""Run the embodied conversational agent: io → dialogue → gesture → render, each in its own process.
+
+    python launch.py --mic                                   talk to it (real time)
+    python launch.py --replay talk.wav                       a recording stands in for the microphone
+    python launch.py --replay talk.wav --headless --mp4 out.mp4   offline, lossless, as fast as possible
+    python launch.py --speak agent.wav                       the agent speaks this recording (co-speech gesture)
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: every stage process inherits it
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import uuid  # noqa: E402
+from dataclasses import asdict  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import yaml  # noqa: E402
+
+from agent.config import ConfigError  # noqa: E402
+from agent.io.audio_file import AudioFileError, load_audio  # noqa: E402
+from agent.io.sources import NoAudioDevice, check_input_device  # noqa: E402
+from agent.latency import format_table  # noqa: E402
+from agent.sections import AppConfig, load_app_config  # noqa: E402
+from agent.stage import RunContext  # noqa: E402
+from agent.supervisor import Supervisor  # noqa: E402
+from agent.timing import SAMPLE_RATE_HZ  # noqa: E402
+
+DEFAULT_CONFIG = Path(__file__).parent / "configs" / "default.yaml"
+EXIT_USAGE = 2
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    source = p.add_mutually_exclusive_group()
+    source.add_argument("--mic", action="store_true", help="listen to the microphone (real time)")
+    source.add_argument("--replay", metavar="FILE", help="replay a recording as the user's voice")
+    p.add_argument("--speak", metavar="FILE", help="the agent speaks this recording (playback backend)")
+    p.add_argument("--headless", action="store_true", help="no dashboard and no speaker")
+    p.add_argument("--mp4", metavar="OUT", help="write the rendered conversation to this MP4")
+    p.add_argument("--fast", action="store_true", help="as fast as possible and lossless (offline)")
+    p.add_argument("--seed", type=int, help="random seed (offline runs are deterministic with it)")
+    p.add_argument("--report", metavar="DIR", help="report directory (default runs/<time>/)")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="YAML config (default: %(default)s)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one option, e.g. --set render.size=384 (repeatable)")
+    return p.parse_args(argv)
+
+
+def mode_overrides(args: argparse.Namespace, speak_duration_s: float | None) -> list[str]:
+    """Translate the mode flags into config overrides (applied before --set, so --set wins)."""
+    out = []
+    if args.mic:
+        out += ["io.source=mic"]
+    elif args.replay:
+        out += ["io.source=replay", f"io.replay_path={yaml.safe_dump(args.replay).strip()}"]
+    elif args.speak:
+        out += ["io.source=silence", f"io.silence_s={speak_duration_s + 2.0:.2f}"]
+    if args.speak:
+        out += ["dialogue.backend=playback", f"dialogue.playback.speak={yaml.safe_dump(args.speak).strip()}"]
+    if args.mp4:
+        out += [f"render.mp4_path={yaml.safe_dump(args.mp4).strip()}"]
+    if args.headless:
+        out += ["dashboard.enabled=false", "io.speaker=false"]
+    offline = args.fast or (args.headless and not args.mic)
+    out += ["run.live=false" if offline else "run.live=true"]
+    if args.seed is not None:
+        out += [f"run.seed={args.seed}"]
+    if args.report:
+        out += [f"run.report_dir={yaml.safe_dump(args.report).strip()}"]
+    return out
+
+
+def check_inputs(app: AppConfig) -> None:
+    """Fail before any process starts, with one line, on a bad recording or a missing microphone."""
+    if app.io.source == "replay":
+        if not app.io.replay_path:
+            raise ConfigError("io.replay_path: no recording to replay (pass --replay FILE or --mic)")
+        load_audio(app.io.replay_path, SAMPLE_RATE_HZ)
+    elif app.io.source == "mic":
+        check_input_device(app.io.input_device)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    try:
+        speak_s = len(load_audio(args.speak, SAMPLE_RATE_HZ)) / SAMPLE_RATE_HZ if args.speak else None
+        app = load_app_config(args.config, [*mode_overrides(args, speak_s), *args.overrides])
+        check_inputs(app)
+    except (ConfigError, AudioFileError, NoAudioDevice) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    run_dir = app.run.resolve_report_dir(time.strftime("%Y%m%d-%H%M%S"))
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(app))), sort_keys=False))
+    run = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
+    supervisor = Supervisor(app, run)
+    code = supervisor.run()
+    summary = supervisor.latency.write(run_dir, supervisor.counters(),
+                                       {s: asdict(e) for s, e in supervisor.clock.estimates().items()})
+    print(format_table(summary))
+    print(f"report: {run_dir}/ (latency.json, latency.png, transcript.json, <stage>.log)")
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
