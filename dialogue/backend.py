@@ -1,0 +1,36 @@
+"""The interface every speech-text backend implements, and the factory that builds one from the config."""
+
+from typing import Protocol
+
+import numpy as np
+
+from agent.messages import DialogueStep
+from agent.spec import ConditionSpec
+from dialogue.config import DialogueConfig
+from dialogue.transcript import Transcript
+
+
+class DialogueBackend(Protocol):
+    spec: ConditionSpec
+    transcript: Transcript
+
+    def reset(self) -> None: ...
+
+    def step(self, user_pcm: np.ndarray) -> DialogueStep:
+        """user_pcm (1920,) float32 @ 24 kHz -> the step's DialogueStep (header fields left default)."""
+
+    def close(self) -> None: ...
+
+
+def build_backend(cfg: DialogueConfig, seed: int = 0) -> DialogueBackend:
+    if cfg.backend == "local":
+        from dialogue.local_backend import LocalBackend
+
+        return LocalBackend.from_config(cfg, seed)
+    if cfg.backend == "playback":
+        from dialogue.playback_backend import PlaybackBackend
+
+        return PlaybackBackend.from_config(cfg, seed)
+    from dialogue.moshi_backend import MoshiBackend
+
+    return MoshiBackend.from_config(cfg, seed)
