@@ -1,0 +1,178 @@
+"""Train one region codec.
+
+    python -m gesture.train_codec --config configs/codec/small.yaml --region upper \
+        [--data ../shared/data/beat2/2_scott_0_1_1.npz] [--steps N] [--out DIR] [--resume]
+
+Writes DIR/model.safetensors + config.yaml (loadable by gesture.codec.checkpoint.load_codec),
+optimizer.safetensors + trainer_state.json (for --resume), and loss_curve.png. Evaluation (MPJPE in
+mm, or the jaw error for the face) runs on the training and held-out data at every checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from agent.config import ConfigError  # noqa: E402
+from gesture.codec.build import build_codec  # noqa: E402
+from gesture.codec.checkpoint import MODEL_FILE, load_optimizer, save_codec, save_optimizer  # noqa: E402
+from gesture.codec.config import REGIONS, CodecFileConfig, load_codec_config  # noqa: E402
+from gesture.codec.data import load_motion_splits, sample_batch  # noqa: E402
+from gesture.codec.evaluation import evaluate  # noqa: E402
+from gesture.codec.losses import RegionLoss  # noqa: E402
+from gesture.codec.model import GestureCodec  # noqa: E402
+from gesture.skeleton import Skeleton  # noqa: E402
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+
+
+def commitment_ramp(step: int, ramp_steps: int) -> float:
+    """0 at step 0, rising linearly to 1 at `ramp_steps`."""
+    return 1.0 if ramp_steps == 0 else min(1.0, step / ramp_steps)
+
+
+def plot_history(history: dict, path: Path, region: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_loss, ax_eval) = plt.subplots(1, 2, figsize=(10, 4))
+    ax_loss.plot(history["step"], history["loss"], lw=0.8)
+    ax_loss.set(xlabel="step", ylabel="training loss", yscale="log", title=f"{region} codec")
+    metric = "jaw_error_deg" if region == "face" else "mpjpe_mm"
+    for split in ("train", "heldout"):
+        points = [(e["step"], e[split][metric]) for e in history["eval"] if split in e and metric in e[split]]
+        if points:
+            ax_eval.plot(*zip(*points), marker="o", label=split)
+    ax_eval.set(xlabel="step", ylabel=metric.replace("_", " "), title="reconstruction")
+    ax_eval.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+class CodecTrainer:
+    """Holds the codec, optimiser, schedule and history of one region's training run."""
+
+    def __init__(self, config: CodecFileConfig, region: str, data: Path, out: Path, skeleton: Skeleton) -> None:
+        self.config, self.region, self.out, self.skeleton = config, region, out, skeleton
+        train = config.train
+        torch.manual_seed(train.seed)
+        self.generator = torch.Generator().manual_seed(train.seed)
+        self.train_data, self.heldout_data = load_motion_splits(data, train.holdout_seconds)
+        self.codec: GestureCodec = build_codec(config.codec, region)
+        self.loss = RegionLoss(region, skeleton)
+        self.optimizer = torch.optim.AdamW(self.codec.parameters(), lr=train.lr, weight_decay=train.weight_decay)
+        self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
+        self.step = 0
+        self.history: dict = {"step": [], "loss": [], "eval": []}
+
+    def resume(self) -> None:
+        from safetensors.torch import load_file
+
+        self.codec.load_state_dict(load_file(str(self.out / MODEL_FILE)), strict=True)
+        state = load_optimizer(self.out, self.optimizer)
+        self.step, self.history = state["step"], state["history"]
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(torch.tensor(state["generator"], dtype=torch.uint8))
+        torch.manual_seed(train_seed_at(self.config.train.seed, self.step))
+
+    def evaluate(self) -> dict:
+        result = {"step": self.step, "train": evaluate(self.codec, self.train_data, self.region, self.skeleton)}
+        if self.heldout_data:
+            result["heldout"] = evaluate(self.codec, self.heldout_data, self.region, self.skeleton)
+        self.history["eval"].append(result)
+        return result
+
+    def train_step(self) -> float:
+        train = self.config.train
+        self.codec.train()
+        batch = sample_batch(self.train_data, self.region, train.batch_size, train.window_frames,
+                             train.random_crop_rate, self.generator)  # (B, L, nfeats)
+        out = self.codec(batch)
+        terms = self.loss(out.reconstruction, batch)
+        weight = train.commitment_weight * commitment_ramp(self.step, train.commitment_ramp_steps)
+        loss = terms["total"] + weight * out.commitment_loss
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.codec.parameters(), train.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        self.step += 1
+        value = float(loss.detach())
+        self.history["step"].append(self.step)
+        self.history["loss"].append(value)
+        return value
+
+    def save(self) -> None:
+        save_codec(self.out, self.codec, self.config, self.region)
+        save_optimizer(self.out, self.optimizer, {
+            "step": self.step, "history": self.history, "scheduler": self.scheduler.state_dict(),
+            "generator": self.generator.get_state().tolist()})
+        plot_history(self.history, self.out / "loss_curve.png", self.region)
+
+
+def train_seed_at(seed: int, step: int) -> int:
+    return seed * 1_000_003 + step
+
+
+def _summary(result: dict) -> str:
+    parts = []
+    for split in ("train", "heldout"):
+        if split in result:
+            metrics = result[split]
+            key = "jaw_error_deg" if "jaw_error_deg" in metrics else "mpjpe_mm"
+            parts.append(f"{split} {key} {metrics[key]:.2f} (feature mse {metrics['feature_mse']:.5f})")
+    return f"step {result['step']}: " + "; ".join(parts)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="Train a gesture region codec.")
+    parser.add_argument("--config", required=True, type=Path, help="configs/codec/*.yaml")
+    parser.add_argument("--region", required=True, choices=REGIONS)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="a BEAT2 motion npz or a chunk cache dir")
+    parser.add_argument("--steps", type=int, help="total steps (default: train.steps of the config)")
+    parser.add_argument("--out", type=Path, help="checkpoint directory (default: runs/codec_<region>)")
+    parser.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
+    parser.add_argument("--smplx-model", type=Path, help="a real SMPL-X model file for the FK joints")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    try:
+        config = load_codec_config(args.config)
+    except ConfigError as err:
+        parser.error(str(err))
+    steps = args.steps or config.train.steps
+    out = args.out or Path("runs") / f"codec_{args.region}"
+    skeleton = Skeleton.from_smplx_model(args.smplx_model) if args.smplx_model else Skeleton.default()
+    trainer = CodecTrainer(config, args.region, args.data, out, skeleton)
+    if args.resume:
+        if not (out / MODEL_FILE).is_file():
+            parser.error(f"--resume: no checkpoint in {out}")
+        trainer.resume()
+    else:
+        print(_summary(trainer.evaluate()), file=sys.stderr)
+    with tqdm(total=steps, initial=trainer.step, desc=f"codec {args.region}", dynamic_ncols=True) as bar:
+        while trainer.step < steps:
+            loss = trainer.train_step()
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.4f}")
+            if trainer.step % config.train.checkpoint_every == 0 or trainer.step == steps:
+                result = trainer.evaluate()
+                tqdm.write(_summary(result), file=sys.stderr)
+                trainer.save()
+    final = trainer.history["eval"][-1]
+    print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
