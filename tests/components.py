@@ -71,10 +71,12 @@ class Recorder(_Passive):
         self.sleep_s = float(os.environ.get(RENDER_SLEEP_S, 0))
 
     def handle(self, msg: Message) -> Sequence[Message]:
-        self.log.write(json.dumps({"topic": msg.topic, "step": msg.step, "seq": msg.seq}) + "\n")
+        if isinstance(msg, GestureStep):
+            time.sleep(self.sleep_s)
+        self.log.write(json.dumps({"topic": msg.topic, "step": msg.step, "seq": msg.seq,
+                                   "t_origin_ns": msg.t_origin_ns, "t_done_ns": time.monotonic_ns()}) + "\n")
         if not isinstance(msg, GestureStep):
             return ()
-        time.sleep(self.sleep_s)
         return [RenderFrame(frame_index=i, width=4, height=4, image=np.full((4, 4, 3), msg.step % 256, np.uint8))
                 for i in range(FRAMES_PER_STEP)]
 

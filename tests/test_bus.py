@@ -1,0 +1,106 @@
+"""Publisher and Subscriber in one process, on a private ipc path."""
+
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from agent.bus import Publisher, Subscriber, stage_address
+from agent.clock import ClockSync
+from agent.latency import LatencyRecorder, format_table
+from agent.messages import AudioUser, Command, Control, Metrics
+from agent.sections import BusConfig
+
+
+@pytest.fixture
+def pair(tmp_path):
+    def make(live_queue):
+        ctx = zmq.Context.instance()
+        address = stage_address("io", BusConfig(), tmp_path)
+        pub = Publisher(ctx, address, "io", lossless=live_queue is None)
+        sub = Subscriber(ctx, [address], ["audio.user", "control"], live_queue=live_queue)
+        _join(pub, sub)
+        return pub, sub
+    return make
+
+
+def _join(pub, sub):
+    """Beat until the subscriber hears the publisher (the late-joiner handshake)."""
+    deadline = time.monotonic() + 5
+    while not sub.controls:
+        pub.send(Control(command=Command.HEARTBEAT))
+        sub.socket.poll(20) and sub.poll_into_queue()
+        assert time.monotonic() < deadline, "subscriber never joined"
+    sub.controls.clear()
+
+
+def _drain(sub, expect):
+    deadline = time.monotonic() + 5
+    while sub.poll_into_queue() or time.monotonic() < deadline:
+        if len(sub.queue) + sub.dropped >= expect:
+            break
+        sub.socket.poll(20)
+
+
+def block(step):
+    return AudioUser(step=step, pcm=np.full(1920, step, np.float32))
+
+
+def test_live_queue_drops_the_oldest_and_counts(pair):
+    pub, sub = pair(live_queue=4)
+    for step in range(10):
+        pub.send(block(step))
+    _drain(sub, 10)
+    assert [m.step for m in sub.queue] == [6, 7, 8, 9]
+    assert sub.dropped == 6 and sub.lost == 0
+
+
+def test_offline_is_lossless(pair):
+    pub, sub = pair(live_queue=None)
+    for step in range(500):
+        pub.send(block(step))
+    _drain(sub, 500)
+    assert [m.step for m in sub.queue] == list(range(500)) and sub.dropped == 0
+
+
+def test_controls_are_never_dropped_and_gaps_are_counted_as_lost(pair):
+    pub, sub = pair(live_queue=2)
+    for step in range(6):
+        pub.send(block(step))
+        if step == 2:
+            pub._seq["audio.user"] += 3  # three messages "lost upstream"
+    pub.send(Control(command=Command.EOS))
+    _drain(sub, 6)
+    assert sub.lost == 3 and sub.dropped == 4
+    assert [c.command for c in sub.controls] == [Command.EOS]
+
+
+def test_tcp_and_explicit_endpoints():
+    bus = BusConfig(transport="tcp", base_port=6000, endpoints={"render": "tcp://10.0.0.2:7000"})
+    assert stage_address("dialogue", bus, "/unused") == "tcp://127.0.0.1:6001"
+    assert stage_address("render", bus, "/unused") == "tcp://10.0.0.2:7000"
+
+
+def test_clock_sync_picks_the_shortest_round_trip():
+    sync = ClockSync()
+    sync.add("gesture", t0=0, t1=1_000_500, t2=1_000_600, t3=2_000)  # offset ~1 ms, rtt 1.9 us
+    sync.add("gesture", t0=0, t1=1_050_000, t2=1_050_100, t3=90_000)  # a slow sample
+    est = sync.estimates()["gesture"]
+    assert est.offset_ns == ((1_000_500 - 0) + (1_000_600 - 2_000)) // 2
+    assert est.uncertainty_ns == 950 and est.samples == 2
+
+
+def test_latency_splits_per_stage_and_uses_the_second_frame():
+    rec = LatencyRecorder(("io", "dialogue", "gesture", "render"))
+    ms = 1_000_000
+    stamps = {"io": 1 * ms, "dialogue.in": 2 * ms, "dialogue": 12 * ms, "gesture.in": 13 * ms,
+              "gesture": 30 * ms, "render.in": 31 * ms, "render": 60 * ms}
+    rec.add(Metrics(step=0, t_origin_ns=0, stamps=stamps, values={"frame_index": 0.0}), {})
+    rec.add(Metrics(step=0, t_origin_ns=0, stamps=stamps, values={"frame_index": 1.0}), {"render": 5 * ms})
+    summary = rec.summary({"render": {"dropped": 2}}, {})
+    assert summary["steps_measured"] == 1
+    assert summary["end_to_end_ms"]["p50"] == 55.0  # render's clock runs 5 ms ahead
+    assert summary["stages"]["dialogue"]["compute"]["p50"] == 10.0
+    assert summary["stages"]["gesture"]["wait"]["p50"] == 1.0
+    assert "end to end" in format_table(summary)
