@@ -1,0 +1,34 @@
+# `make demo` sets up a fresh Debian machine and runs the agent on its bundled example; `make test` runs the tests.
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(VENV)/bin/pip
+STAMP := $(VENV)/.installed
+PYTEST_ARGS ?= -m "not slow"
+
+.PHONY: setup demo test test-all bench clean
+
+setup: $(STAMP)
+
+$(STAMP): requirements.txt requirements-nodeps.txt constraints.txt scripts/install_system.sh
+	bash scripts/install_system.sh
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -c constraints.txt -r requirements.txt
+	$(PIP) install -q --no-deps -r requirements-nodeps.txt
+	touch $@
+
+demo: setup
+	mkdir -p out
+	OPENBLAS_NUM_THREADS=1 $(PY) launch.py --headless --mp4 out/demo.mp4 --report out/demo-report
+
+test: setup
+	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS); echo $$? > .pytest-exit; exit $$(cat .pytest-exit)
+
+test-all: PYTEST_ARGS =
+test-all: test
+
+bench: setup
+	$(PY) -m bench.bus --json
+
+clean:
+	rm -rf $(VENV) runs out .pytest-exit
