@@ -136,3 +136,59 @@ class GestureConfig:
             raise ConfigError(f"gesture.speaker: must be >= 0, got {self.speaker}")
         if self.warmup_steps < 0:
             raise ConfigError(f"gesture.warmup_steps: must be >= 0, got {self.warmup_steps}")
+
+
+@dataclass(frozen=True)
+class LMTrainConfig:
+    """Optimisation and schedules of the gesture LM; epoch thresholds are in epochs of `steps_per_epoch` steps
+    (reference: warm-up 50, CFG ramp to 100, pad ramp 100..200, tau over 5 epochs, StepLR ×0.8 every 2000)."""
+
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+    batch_size: int = 128
+    window_steps: int = 125  # one 10 s chunk
+    epochs: int = 6500
+    steps_per_epoch: int = 100
+    warmup_epochs: float = 50
+    cond_drop_end_epoch: float = 100
+    cond_drop_final: float = 0.1
+    pad_start_epoch: float = 100
+    pad_full_epoch: float = 200
+    pad_rate: float = 0.1
+    tau_start: float = 1.0
+    tau_end: float = 0.4
+    tau_epochs: float = 5
+    face_ce_weight: float = 2.5
+    infonce_weight: float = 0.1
+    infonce_segment_steps: int = 12
+    infonce_temperature: float = 0.1
+    va_weight: float = 0.05
+    lr_step_epochs: int = 2000
+    lr_gamma: float = 0.8
+    checkpoint_every_epochs: int = 10
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("lr", "grad_clip", "batch_size", "window_steps", "epochs", "steps_per_epoch", "tau_start",
+                     "tau_end", "infonce_segment_steps", "infonce_temperature", "lr_step_epochs",
+                     "checkpoint_every_epochs"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"train.{name}: must be > 0, got {getattr(self, name)}")
+        if self.window_steps < self.infonce_segment_steps:
+            raise ConfigError(f"train.window_steps: must be >= infonce_segment_steps ({self.infonce_segment_steps})")
+        if not (self.warmup_epochs <= self.cond_drop_end_epoch and self.pad_start_epoch <= self.pad_full_epoch):
+            raise ConfigError("train.cond_drop_end_epoch / pad_full_epoch: must not come before their start")
+        for name in ("cond_drop_final", "pad_rate"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"train.{name}: must be in [0, 1], got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class LMFileConfig:
+    """A configs/lm/*.yaml file: model sizes, the conditioning vocabulary, and the training recipe."""
+
+    lm: LMConfig = field(default_factory=LMConfig)
+    condition: ConditionSpecConfig = field(default_factory=lambda: ConditionSpecConfig(
+        name="moshi", text_vocab=32001, audio_card=2049, embed_dim=4096))
+    train: LMTrainConfig = field(default_factory=LMTrainConfig)

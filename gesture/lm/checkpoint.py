@@ -1,0 +1,69 @@
+"""Gesture LM checkpoints: a directory with `lm.safetensors` (weights), `lm.json` (model sizes, the condition
+spec it was trained with, epoch/step) and, while training, `train_state.pt` (optimizer, scheduler, RNG)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Optional
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from agent.config import build_dataclass
+from agent.spec import ConditionSpec
+from gesture.config import LMConfig
+from gesture.lm.model import GestureLM
+
+WEIGHTS_FILE = "lm.safetensors"
+META_FILE = "lm.json"
+CHECKPOINT_PREFIXES = ("module.", "m.")
+
+
+def save_lm(model: GestureLM, directory: Path, **progress: int) -> None:
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    save_file(state, str(directory / WEIGHTS_FILE))
+    meta = {"lm": dataclasses.asdict(model.sizes), "condition": model.spec.to_dict(), **progress}
+    (directory / META_FILE).write_text(json.dumps(meta, indent=2))
+
+
+def read_meta(directory: Path) -> dict:
+    path = Path(directory) / META_FILE
+    if not path.exists():
+        raise FileNotFoundError(f"{directory}: not a gesture LM checkpoint ({META_FILE} is missing)")
+    return json.loads(path.read_text())
+
+
+def load_lm(directory: Path, expected_spec: Optional[ConditionSpec] = None) -> GestureLM:
+    """Build the model of a checkpoint directory; with `expected_spec`, refuse a checkpoint trained on another
+    conditioning vocabulary (a clear `SpecMismatchError`, never garbage tokens)."""
+    meta = read_meta(directory)
+    spec = ConditionSpec.from_dict(meta["condition"])
+    if expected_spec is not None:
+        spec.check_compatible(expected_spec, f"gesture LM checkpoint {directory}")
+    model = GestureLM(build_dataclass(LMConfig, meta["lm"], "lm"), spec)
+    state = load_file(str(Path(directory) / WEIGHTS_FILE))
+    state = {_strip_prefix(k): v.float() for k, v in state.items()}
+    model.load_state_dict(state, strict=True)
+    return model.eval()
+
+
+def _strip_prefix(key: str) -> str:
+    for prefix in CHECKPOINT_PREFIXES:
+        if key.startswith(prefix):
+            return key[len(prefix):]
+    return key
+
+
+def save_train_state(directory: Path, optimizer: torch.optim.Optimizer, scheduler, generator: torch.Generator,
+                     losses: list[dict]) -> None:
+    torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                "generator": generator.get_state(), "losses": losses}, Path(directory) / "train_state.pt")
+
+
+def load_train_state(directory: Path) -> Optional[dict]:
+    path = Path(directory) / "train_state.pt"
+    return torch.load(path, weights_only=False) if path.exists() else None

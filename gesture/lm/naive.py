@@ -1,0 +1,62 @@
+"""A cache-free step engine with the `LMStepper` interface: every step recomputes the temporal transformer over its
+whole receptive field, and every depth level recomputes all depth positions. It is the benchmark's baseline and a
+test oracle; its outputs equal the cached path because the window covers the full receptive field
+(L * (self_context − 1) + cross_context steps)."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import torch
+
+from gesture.lm.model import GestureLM
+
+
+class NaiveStepper:
+    def __init__(self, model: GestureLM, guided: bool) -> None:
+        self.model, self.sizes = model, model.sizes
+        self.batch = 2 if guided else 1
+        self.has_va = model.sizes.va_head
+        s = self.sizes
+        self.window = s.temporal_layers * (s.self_context_steps - 1) + s.cross_context_steps
+        self.history: deque = deque(maxlen=self.window)  # (history (K,), text (), audio (Q,)) per step
+        self.step = 0
+        self.speaker = torch.tensor([0])
+
+    def set_speaker(self, speaker: int) -> None:
+        self.speaker = torch.tensor([speaker])
+
+    def reset(self) -> None:
+        self.history.clear()
+        self.step = 0
+
+    def _rows(self, x: torch.Tensor) -> torch.Tensor:
+        """(1, ...) conditioned tensor -> (B, ...) with the null row all −1."""
+        return x if self.batch == 1 else torch.cat([x, torch.full_like(x, -1)])
+
+    def begin_step(self, history: torch.Tensor, text: int, audio: torch.Tensor) -> torch.Tensor:
+        self.history.append((history.clone(), torch.tensor(text), audio.clone()))
+        hist = torch.stack([h for h, _, _ in self.history], dim=-1)[None].expand(self.batch, -1, -1)  # (B, K, W)
+        text_w = self._rows(torch.stack([t for _, t, _ in self.history])[None])  # (B, W)
+        audio_w = self._rows(torch.stack([a for _, _, a in self.history], dim=-1)[None])  # (B, Q, W)
+        model, speaker = self.model, self.speaker.expand(self.batch)
+        audio_sum, text_emb = model.condition_embeddings(text_w, audio_w)
+        offset = self.step - len(self.history) + 1
+        temporal = model.temporal_forward(hist, audio_sum, text_emb, speaker, offset)[:, -1:]  # (B, 1, d)
+        self.temporal_out = temporal[:, 0]
+        self.normed = model.out_norm(temporal)
+        self.current_cond = (audio_sum[:, -1:], text_emb[:, -1:])
+        self.current = torch.zeros(self.batch, self.sizes.n_levels, 1, dtype=torch.long)  # (B, K, 1)
+        self.step += 1
+        return model.temporal_classifier(self.normed[:, 0])
+
+    def depth_logits(self, k: int, token: int) -> torch.Tensor:
+        self.current[:, k] = token
+        logits = self.model.depth_forward(self.normed, self.current, *self.current_cond, self.speaker.expand(self.batch))
+        return logits[:, 0, k]  # (B, V)
+
+    def va_logit(self, face_logits: torch.Tensor | None = None) -> float:
+        features = self.temporal_out[:1]
+        if self.sizes.va_use_face_logits:
+            features = torch.cat([features, self.model.vad_face_proj(face_logits.reshape(1, -1))], dim=-1)
+        return float(self.model.vad_predictor(features)[0, 0])
