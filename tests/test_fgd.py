@@ -28,8 +28,10 @@ def test_topology_gives_the_reference_sizes():
     near = edge_neighbours(edges, 2)
     # wrist edge: itself, the forearm and upper arm, and the first two bones of every finger
     assert sorted(near[20]) == [16, 18, 20, 25, 26, 28, 29, 31, 32, 34, 35, 37, 38]
-    assert len(skeleton_chains(edges)) == 35
+    chains = skeleton_chains(edges)
+    assert len(chains) == 20 and chains[:3] == [[0], [1, 4, 7, 10], [2, 5, 8, 11]]
     enc = VAESKConvEncoder()
+    assert [len(layer[0].groups) for layer in enc.layers] == [35, 20, 20, 20]
     assert enc.latent_dim == 240  # 20 chains x 12 channels: "latent 240, input 330"
     assert enc.layers[0][0].residual[0].weight.shape == (330, 330, 4)
     out = enc(torch.randn(2, 64, 330))
