@@ -1,0 +1,113 @@
+"""The gesture stage: dialogue.step -> gesture.step (2 frames of SMPL-X parameters, 20 tokens, voice activity).
+
+`create_component(cfg, run)` loads the LM and the three codecs, checks the LM's condition spec against the
+dialogue backend's (`gesture.dialogue_spec`, filled in by the launcher), warms up, and returns the component.
+A new session resets the generator. `close()` writes `gesture.json` (step count and step-time percentiles).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from agent.config import ConfigError
+from agent.messages import DialogueStep, GestureStep, Message
+from agent.spec import ConditionSpec
+from agent.stage import RunContext
+from agent.timing import STEP_SAMPLES
+from gesture.config import GestureConfig
+from gesture.generator import GestureGenerator
+from gesture.lm.checkpoint import load_lm
+from gesture.lm.codecs import load_codecs
+from gesture.lm.idle import IdleGate, load_idle_slices
+
+log = logging.getLogger(__name__)
+STATS_FILE = "gesture.json"
+DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
+class GestureComponent:
+    def __init__(self, generator: GestureGenerator, run: RunContext) -> None:
+        self.generator = generator
+        self.run = run
+        self.session: Optional[str] = None
+        self.step_ms: list[float] = []  # bounded: summarised and cleared every STATS_EVERY steps
+        self.summary = {"steps": 0, "sessions": 0}
+
+    def handle(self, msg: Message) -> Sequence[Message]:
+        if not isinstance(msg, DialogueStep):
+            return ()
+        if msg.session != self.session:
+            if self.session is not None:
+                self.generator.reset()
+            self.session = msg.session
+            self.summary["sessions"] += 1
+        start = time.perf_counter()
+        out = self.generator.step(msg.text_token, msg.agent_codes, msg.agent_pcm)
+        self._record((time.perf_counter() - start) * 1e3)
+        return (GestureStep(poses=out.poses, trans=out.trans, expressions=out.expressions, tokens=out.tokens,
+                            va_prob=out.va_prob),)
+
+    def _record(self, ms: float) -> None:
+        self.summary["steps"] += 1
+        self.step_ms.append(ms)
+        if len(self.step_ms) >= 4096:
+            self._summarise()
+
+    def _summarise(self) -> None:
+        if self.step_ms:
+            ms = np.asarray(self.step_ms)
+            self.summary.update(step_ms_median=float(np.median(ms)), step_ms_p95=float(np.percentile(ms, 95)),
+                                step_ms_p99=float(np.percentile(ms, 99)), step_ms_max=float(ms.max()))
+            self.step_ms.clear()
+
+    def flush(self) -> Sequence[Message]:
+        return ()
+
+    def close(self) -> None:
+        self._summarise()
+        self.generator.close()
+        self.run.run_dir.mkdir(parents=True, exist_ok=True)
+        (self.run.run_dir / STATS_FILE).write_text(json.dumps(self.summary, indent=2))
+
+
+def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
+    """The generator of a `gesture:` section: checkpoints, spec check, sampling options, idle gate."""
+    if cfg.lm_checkpoint is None:
+        raise ConfigError("gesture.lm_checkpoint: required (a directory written by python -m gesture.train_lm)")
+    if cfg.codec_checkpoints is None:
+        raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
+    expected = ConditionSpec(**vars(cfg.dialogue_spec)) if cfg.dialogue_spec is not None else None
+    lm = load_lm(cfg.lm_checkpoint, expected)
+    codecs = load_codecs(cfg.codec_checkpoints)
+    idle = None
+    if cfg.idle.enabled:
+        upper, face = load_idle_slices(cfg.idle.slices_dir)
+        s = lm.sizes
+        idle = IdleGate(upper, face, slice(0, s.n_upper), slice(s.face_levels.start, s.n_levels),
+                        cfg.idle.window_samples, cfg.idle.l2_threshold, cfg.idle.rewind_below_tokens)
+    return GestureGenerator(lm, codecs, temperature=cfg.temperature, top_p_temporal=cfg.top_p_temporal,
+                            top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
+                            dtype=DTYPES[cfg.dtype], idle_gate=idle, initial_translation=cfg.initial_translation)
+
+
+def warm_up(generator: GestureGenerator, steps: int) -> None:
+    """Run `steps` silent steps (no condition), then reset: first-call allocations happen before the stream."""
+    silence = np.zeros(STEP_SAMPLES, np.float32)
+    for _ in range(steps):
+        generator.step(-1, np.full(generator.spec.n_audio_codebooks, -1), silence)
+    generator.reset()
+
+
+def create_component(cfg: GestureConfig, run: RunContext) -> GestureComponent:
+    torch.set_num_threads(1)
+    generator = build_generator(cfg, run.seed)
+    warm_up(generator, cfg.warmup_steps)
+    log.info("gesture LM %s (spec %s), codecs %s, cfg %.2f, dtype %s", cfg.lm_checkpoint, generator.spec.name,
+             cfg.codec_checkpoints, cfg.cfg_scale, cfg.dtype)
+    return GestureComponent(generator, run)

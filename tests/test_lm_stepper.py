@@ -1,0 +1,93 @@
+"""The cached step path equals the teacher-forced full-sequence forward (incl. after the ring caches wrap)."""
+
+import pytest
+import torch
+
+from gesture.lm.fixtures import tiny_lm
+from gesture.lm.naive import NaiveStepper
+from gesture.lm.stepper import LMStepper
+
+torch.set_num_threads(1)
+STEPS = 200
+
+
+def _sequence(model, steps, seed=3):
+    g = torch.Generator().manual_seed(seed)
+    s, spec = model.sizes, model.spec
+    tokens = torch.randint(0, s.card, (s.n_levels, steps), generator=g)
+    text = torch.randint(-1, spec.text_vocab, (steps,), generator=g)
+    audio = torch.randint(-1, spec.audio_card, (spec.n_audio_codebooks, steps), generator=g)
+    return tokens, text, audio
+
+
+def _full_logits(model, tokens, text, audio, speaker, guided):
+    """(B, T, K, V): row 0 conditioned, row 1 (guided) the null condition with the same history."""
+    rows = 2 if guided else 1
+    text_b = torch.stack([text, torch.full_like(text, -1)])[:rows]
+    audio_b = torch.stack([audio, torch.full_like(audio, -1)])[:rows]
+    with torch.no_grad():
+        return model(tokens[None].expand(rows, -1, -1), text_b, audio_b, torch.tensor([speaker] * rows)).logits
+
+
+def _stream_logits(engine, tokens, text, audio):
+    out = []
+    with torch.inference_mode():
+        for t in range(tokens.shape[1]):
+            history = tokens[:, t - 1] if t else torch.full((tokens.shape[0],), -1)
+            step = [engine.begin_step(history, int(text[t]), audio[:, t])]
+            step += [engine.depth_logits(k, int(tokens[k, t])) for k in range(tokens.shape[0] - 1)]
+            out.append(torch.stack(step, dim=1))  # (B, K, V)
+    return torch.stack(out, dim=1)  # (B, T, K, V)
+
+
+@pytest.mark.parametrize("guided", [False, True])
+def test_streaming_equals_full_forward_over_200_steps(guided):
+    model = tiny_lm(va_use_face_logits=True)
+    assert STEPS > 3 * model.sizes.cross_context_steps  # every ring wraps several times
+    tokens, text, audio = _sequence(model, STEPS)
+    full = _full_logits(model, tokens, text, audio, 2, guided)
+    stepper = LMStepper(model, guided)
+    stepper.set_speaker(2)
+    streamed = _stream_logits(stepper, tokens, text, audio)
+    assert (streamed - full).abs().max() < 1e-4
+
+
+def test_reset_restarts_the_stream_exactly():
+    model = tiny_lm()
+    tokens, text, audio = _sequence(model, 30)
+    stepper = LMStepper(model, guided=True)
+    first = _stream_logits(stepper, tokens, text, audio)
+    stepper.reset()
+    assert torch.equal(_stream_logits(stepper, tokens, text, audio), first)
+
+
+def test_naive_baseline_equals_cached_path():
+    model = tiny_lm()
+    tokens, text, audio = _sequence(model, 40)
+    cached = _stream_logits(LMStepper(model, guided=True), tokens, text, audio)
+    naive = _stream_logits(NaiveStepper(model, guided=True), tokens, text, audio)
+    assert (cached - naive).abs().max() < 1e-4
+
+
+def test_va_head_of_the_step_path_equals_full_forward():
+    model = tiny_lm(va_use_face_logits=True)
+    tokens, text, audio = _sequence(model, 12)
+    with torch.no_grad():
+        full = model(tokens[None], text[None], audio[None], torch.tensor([0])).va_logit[0]
+    stepper = LMStepper(model, guided=False)
+    face = model.sizes.face_levels
+    with torch.inference_mode():
+        for t in range(12):
+            history = tokens[:, t - 1] if t else torch.full((model.sizes.n_levels,), -1)
+            stepper.begin_step(history, int(text[t]), audio[:, t])
+            logits = [stepper.depth_logits(k, int(tokens[k, t])) for k in range(model.sizes.n_depth)]
+            face_logits = torch.stack([logits[level - 1][0] for level in face])
+            assert abs(stepper.va_logit(face_logits) - float(full[t])) < 1e-4
+
+
+def test_bfloat16_weights_stay_close_to_float32():
+    model = tiny_lm()
+    tokens, text, audio = _sequence(model, 30)
+    ref = _stream_logits(LMStepper(model, guided=True), tokens, text, audio)
+    low = _stream_logits(LMStepper(model, guided=True, dtype=torch.bfloat16), tokens, text, audio)
+    assert (low - ref).abs().max() < 0.05 * ref.abs().max()
