@@ -1,0 +1,51 @@
+"""Shared helpers of the dialogue tests: real recordings as 80 ms blocks, and a component run."""
+
+from pathlib import Path
+
+import numpy as np
+import soundfile as sf
+from scipy.signal import resample_poly
+
+from agent.config import build_dataclass
+from agent.messages import AudioUser
+from agent.stage import RunContext
+from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from dialogue.config import DialogueConfig
+from dialogue.process import create_component
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+LIBRIVOX = SHARED_DATA / "speech" / "librivox_0870.wav"
+BEAT2_WAV = SHARED_DATA / "beat2" / "2_scott_0_1_1.wav"
+
+
+def load_24k(path: Path) -> np.ndarray:
+    pcm, rate = sf.read(str(path), dtype="float32", always_2d=True)
+    return resample_poly(pcm.mean(1), SAMPLE_RATE_HZ, rate).astype(np.float32)
+
+
+def silence(seconds: float) -> np.ndarray:
+    return np.zeros(int(seconds * SAMPLE_RATE_HZ), np.float32)
+
+
+def blocks(pcm: np.ndarray) -> list[np.ndarray]:
+    n = -(-len(pcm) // STEP_SAMPLES) * STEP_SAMPLES
+    padded = np.concatenate([pcm, np.zeros(n - len(pcm), np.float32)])
+    return [padded[i:i + STEP_SAMPLES] for i in range(0, n, STEP_SAMPLES)]
+
+
+def dialogue_cfg(**section) -> DialogueConfig:
+    return build_dataclass(DialogueConfig, section, "dialogue")
+
+
+def run_component(cfg: DialogueConfig, pcm: np.ndarray, run_dir: Path):
+    """Feed the recording through the real dialogue component; returns (steps, transcript dict)."""
+    import json
+
+    component = create_component(cfg, RunContext(run_dir, False, 0, "test"))
+    steps = []
+    for i, block in enumerate(blocks(pcm)):
+        (out,) = component.handle(AudioUser(pcm=block, step=i))
+        steps.append(out)
+    component.flush()
+    component.close()
+    return steps, json.loads((run_dir / cfg.transcript_name).read_text())
