@@ -32,18 +32,30 @@ class _WeightNormMixin:
             self.weight_v = nn.Parameter(weight.detach().clone())
         else:
             self.weight = nn.Parameter(weight.detach().clone())
-        self._folded: tuple[tuple, torch.Tensor] | None = None
+        self._cache: dict[str, tuple[tuple, torch.Tensor]] = {}
+
+    def _needs_grad(self) -> bool:
+        return torch.is_grad_enabled() and any(p.requires_grad for p in self._weight_tensors())
+
+    def _weight_tensors(self) -> tuple[torch.Tensor, ...]:
+        return (self.weight_g, self.weight_v) if self.weight_norm else (self.weight,)
+
+    def _cached(self, name: str, compute) -> torch.Tensor:
+        """`compute()` once per version of the weights (any in-place change or move recomputes it)."""
+        version = tuple((t._version, t.data_ptr(), t.dtype) for t in self._weight_tensors())
+        hit = self._cache.get(name)
+        if hit is None or hit[0] != version:
+            with torch.no_grad():
+                hit = (version, compute())
+            self._cache[name] = hit
+        return hit[1]
 
     def folded_weight(self) -> torch.Tensor:
         if not self.weight_norm:
             return self.weight
-        if torch.is_grad_enabled() and (self.weight_g.requires_grad or self.weight_v.requires_grad):
+        if self._needs_grad():
             return self._fold()
-        version = (self.weight_g._version, self.weight_v._version, self.weight_v.data_ptr(), self.weight_v.dtype)
-        if self._folded is None or self._folded[0] != version:
-            with torch.no_grad():
-                self._folded = (version, self._fold())
-        return self._folded[1]
+        return self._cached("folded", self._fold)
 
     def _fold(self) -> torch.Tensor:
         v = self.weight_v
@@ -69,11 +81,23 @@ class _Conv1dParams(nn.Module, _WeightNormMixin):
         super().__init__()
         reference = nn.Conv1d(in_channels, out_channels, kernel_size, stride, dilation=dilation, bias=bias)
         self.stride, self.dilation, self.kernel_size = stride, dilation, kernel_size
+        self.span = (kernel_size - 1) * dilation + 1
         self._init_weight(reference.weight, weight_norm)
         self.bias = None if reference.bias is None else nn.Parameter(reference.bias.detach().clone())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] <= self.span + self.stride and not self._needs_grad():
+            return self._forward_as_linear(x)
         return F.conv1d(x, self.folded_weight(), self.bias, self.stride, 0, self.dilation)
+
+    def _forward_as_linear(self, x: torch.Tensor) -> torch.Tensor:
+        """Few output frames (streaming): one matrix product on the gathered windows, same result."""
+        windows = x.unfold(-1, self.span, self.stride)  # (B, C_in, T_out, span)
+        if self.dilation > 1:
+            windows = windows[..., :: self.dilation]  # (B, C_in, T_out, K)
+        flat = windows.permute(0, 2, 1, 3).flatten(2)  # (B, T_out, C_in * K)
+        matrix = self._cached("matrix", lambda: self.folded_weight().flatten(1).contiguous())  # (C_out, C_in * K)
+        return F.linear(flat, matrix, self.bias).transpose(1, 2)  # (B, C_out, T_out)
 
 
 class _ConvTranspose1dParams(nn.Module, _WeightNormMixin):
@@ -86,7 +110,16 @@ class _ConvTranspose1dParams(nn.Module, _WeightNormMixin):
         self.bias = None if reference.bias is None else nn.Parameter(reference.bias.detach().clone())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] == 1 and not self._needs_grad():
+            return self._forward_one_frame(x)
         return F.conv_transpose1d(x, self.folded_weight(), self.bias, self.stride)
+
+    def _forward_one_frame(self, x: torch.Tensor) -> torch.Tensor:
+        """One input frame (streaming): a matrix product, (B, C_in, 1) -> (B, C_out, K)."""
+        c_out = self.folded_weight().shape[1]
+        matrix = self._cached("matrix", lambda: self.folded_weight().flatten(1).t().contiguous())  # (C_out * K, C_in)
+        y = F.linear(x[..., 0], matrix).unflatten(-1, (c_out, self.kernel_size))  # (B, C_out, K)
+        return y if self.bias is None else y + self.bias[:, None]
 
 
 @dataclass

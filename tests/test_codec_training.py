@@ -1,0 +1,99 @@
+"""Codec losses, checkpoints and the training CLI (a short real run on the BEAT2 clip is slow-marked)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from gesture.codec.checkpoint import load_codec
+from gesture.codec.losses import RegionLoss, integrate_root, laplacian, log_map, velocity
+from gesture.motion import integrate_velocity
+from gesture.regions import motion_to_features
+from gesture.rotation import axis_angle_to_matrix
+from gesture.train_codec import commitment_ramp, main
+
+torch.set_num_threads(1)
+CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+TINY_YAML = {
+    "codec": {"latent_dim": 32, "n_filters": 16, "dim_feedforward": 64, "codebook_size": 32, "codebook_dim": 8,
+              "kmeans_iters": 3, "dropout": 0.0,
+              "regions": {"upper": {"n_q": 2, "num_layers": 1, "num_heads": 2},
+                          "lower": {"n_q": 2, "num_layers": 1, "num_heads": 2},
+                          "face": {"n_q": 2, "num_layers": 1, "num_heads": 2}}},
+    "train": {"batch_size": 2, "window_frames": 16, "lr": 1e-3, "steps": 4, "checkpoint_every": 2},
+}
+
+
+def test_laplacian_velocity_and_integration_known_values():
+    t = torch.arange(10.0)
+    x = (t ** 2)[None, :, None]  # (1, 10, 1)
+    torch.testing.assert_close(laplacian(x), torch.full((1, 6, 1), 2.0))
+    torch.testing.assert_close(velocity(x)[0, :3, 0], torch.tensor([1.0, 3.0, 5.0]))
+    vel = np.random.default_rng(0).normal(size=(7, 3))
+    expected = integrate_velocity(vel, np.zeros(3), 25.0)
+    torch.testing.assert_close(integrate_root(torch.tensor(vel)[None])[0], torch.tensor(expected))
+
+
+def test_log_map_matches_axis_angle_and_has_finite_gradients():
+    aa = torch.tensor([[0.3, -0.2, 0.1], [0.0, 0.0, 0.0], [1.5, 0.5, -1.0]])
+    torch.testing.assert_close(log_map(axis_angle_to_matrix(aa)), aa, atol=1e-5, rtol=0)
+    eye = torch.eye(3, requires_grad=True)
+    log_map(eye).sum().backward()
+    assert torch.isfinite(eye.grad).all()
+
+
+@pytest.mark.parametrize("region", ["upper", "lower", "face"])
+def test_region_loss_vanishes_on_the_target_and_grows_with_error(region):
+    rng = np.random.default_rng(0)
+    features = [motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), 0.05 * rng.normal(size=(12, 3)).cumsum(0),
+                                   rng.normal(size=(12, 100)))[region] for _ in range(2)]
+    target = torch.from_numpy(np.stack(features))  # (2, 12, nfeats)
+    loss = RegionLoss(region)
+    same = loss(target, target)
+    for name in ("rot6d", "axis_angle", "rotmat_velocity", "joints", "contacts", "root_velocity", "expressions_l1"):
+        if name in same:
+            assert float(same[name]) < 1e-6, name
+    torch.manual_seed(0)
+    small = loss(target + 0.01 * torch.randn_like(target), target)["total"]
+    large = loss(target + 0.3 * torch.randn_like(target), target)["total"]
+    assert float(large) > float(small) > float(same["total"])
+    with pytest.raises(ValueError, match="differ"):
+        loss(target[:, :4], target)
+
+
+def test_commitment_ramp():
+    assert [commitment_ramp(s, 4) for s in (0, 2, 4, 9)] == [0.0, 0.5, 1.0, 1.0]
+
+
+@pytest.mark.skipif(not CLIP.is_file(), reason="needs ../shared/data/beat2")
+def test_cli_trains_checkpoints_and_resumes(tmp_path, capsys):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(yaml.safe_dump(TINY_YAML))
+    out = tmp_path / "run"
+    assert main(["--config", str(config), "--region", "face", "--data", str(CLIP), "--out", str(out)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["last"]["step"] == 4 and "jaw_error_deg" in report["last"]["heldout"]
+    for name in ("model.safetensors", "config.yaml", "optimizer.safetensors", "trainer_state.json", "loss_curve.png"):
+        assert (out / name).is_file(), name
+    codec = load_codec(out)
+    assert not codec.training and codec.nfeats == 106
+    assert main(["--config", str(config), "--region", "face", "--data", str(CLIP), "--out", str(out),
+                 "--resume", "--steps", "6"]) == 0
+    state = json.loads((out / "trainer_state.json").read_text())
+    assert state["step"] == 6 and len(state["history"]["loss"]) == 6
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not CLIP.is_file(), reason="needs ../shared/data/beat2")
+def test_short_training_run_lowers_mpjpe_on_the_clip_and_held_out(tmp_path, capsys):
+    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs/codec/small.yaml").read_text())
+    config["train"].update(steps=150, checkpoint_every=150)
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(config))
+    main(["--config", str(path), "--region", "upper", "--data", str(CLIP), "--out", str(tmp_path / "run")])
+    report = json.loads(capsys.readouterr().out)
+    for split in ("train", "heldout"):
+        assert report["last"][split]["mpjpe_mm"] < 0.6 * report["first"][split]["mpjpe_mm"], split
