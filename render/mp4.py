@@ -1,0 +1,105 @@
+"""MP4 writer: H.264 yuv420p video and AAC audio with exactly one video frame's worth of audio per frame.
+
+The file is written under a temporary name next to the target and renamed on a successful `close()`;
+`close(commit=False)`, an exception inside `with Mp4Writer(...)` or Ctrl-C removes it, so a partial MP4
+is never left behind.
+"""
+
+from __future__ import annotations
+
+import os
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+
+from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
+
+
+class Mp4Error(RuntimeError):
+    """Bad input to the MP4 writer."""
+
+
+class Mp4Writer:
+    """Write (H, W, 3) uint8 frames, each with its `samples_per_frame` audio samples (mono or stereo float32)."""
+
+    def __init__(self, path: str | Path, width: int, height: int, fps: int = MOTION_FPS,
+                 sample_rate_hz: int = SAMPLE_RATE_HZ, channels: int = 1, crf: int = 20,
+                 preset: str = "veryfast") -> None:
+        if width % 2 or height % 2:
+            raise Mp4Error(f"yuv420p needs an even frame size, got {width}x{height}")
+        if sample_rate_hz % fps:
+            raise Mp4Error(f"{sample_rate_hz} Hz audio does not divide into {fps} frames per second")
+        if channels not in (1, 2):
+            raise Mp4Error(f"audio channels must be 1 (mixed) or 2 (stereo), got {channels}")
+        self.path = Path(path)
+        self.width, self.height, self.fps = width, height, fps
+        self.sample_rate_hz, self.channels = sample_rate_hz, channels
+        self.samples_per_frame = sample_rate_hz // fps
+        self.frames_written = 0
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp_path = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
+        self._container = av.open(str(self._tmp_path), mode="w", format="mp4")
+        self._video = self._container.add_stream("libx264", rate=fps)
+        self._video.width, self._video.height, self._video.pix_fmt = width, height, "yuv420p"
+        self._video.options = {"crf": str(crf), "preset": preset}
+        self._video.codec_context.time_base = Fraction(1, fps)
+        self._audio = self._container.add_stream("aac", rate=sample_rate_hz)
+        self._audio.layout = "mono" if channels == 1 else "stereo"
+        self._closed = False
+
+    def write(self, frame_rgb: np.ndarray, audio: np.ndarray) -> None:
+        """frame_rgb (H, W, 3) uint8; audio (samples_per_frame,) or (samples_per_frame, channels) float32."""
+        if frame_rgb.shape != (self.height, self.width, 3) or frame_rgb.dtype != np.uint8:
+            raise Mp4Error(f"frame must be ({self.height}, {self.width}, 3) uint8, got {frame_rgb.shape} {frame_rgb.dtype}")
+        audio = np.asarray(audio, dtype=np.float32)
+        if audio.ndim == 1:
+            audio = audio[:, None]
+        if audio.shape[0] != self.samples_per_frame or audio.shape[1] not in (1, self.channels):
+            raise Mp4Error(f"audio must be ({self.samples_per_frame},) or ({self.samples_per_frame}, {self.channels}) "
+                           f"per frame, got {audio.shape}")
+        planar = np.ascontiguousarray(np.broadcast_to(audio, (self.samples_per_frame, self.channels)).T)  # (C, N)
+        video_frame = av.VideoFrame.from_ndarray(frame_rgb, format="rgb24")
+        video_frame.pts = self.frames_written
+        self._container.mux(self._video.encode(video_frame))
+        audio_frame = av.AudioFrame.from_ndarray(np.clip(planar, -1.0, 1.0), format="fltp", layout=self._audio.layout.name)
+        audio_frame.sample_rate = self.sample_rate_hz
+        audio_frame.pts = self.frames_written * self.samples_per_frame
+        self._container.mux(self._audio.encode(audio_frame))
+        self.frames_written += 1
+
+    def close(self, commit: bool = True) -> Path | None:
+        """Flush and finalise; rename to the target on commit, otherwise delete the partial file."""
+        if self._closed:
+            return self.path if commit else None
+        self._closed = True
+        try:
+            if commit:
+                self._container.mux(self._video.encode(None))
+                self._container.mux(self._audio.encode(None))
+            self._container.close()
+        except BaseException:
+            self._tmp_path.unlink(missing_ok=True)
+            raise
+        if not commit:
+            self._tmp_path.unlink(missing_ok=True)
+            return None
+        os.replace(self._tmp_path, self.path)
+        return self.path
+
+    def __enter__(self) -> "Mp4Writer":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close(commit=exc_type is None)
+
+
+def mix_conversation(agent_pcm: np.ndarray, user_pcm: np.ndarray, stereo: bool) -> np.ndarray:
+    """The MP4 audio of a step: user and agent mixed (N,) or stereo (N, 2) with the user left, agent right."""
+    agent = np.asarray(agent_pcm, dtype=np.float32)
+    user = np.asarray(user_pcm, dtype=np.float32)
+    if stereo:
+        return np.stack([user, agent], axis=1)
+    return np.clip(user + agent, -1.0, 1.0)
+

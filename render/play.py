@@ -1,0 +1,146 @@
+"""Render a BEAT2/SMPL-X motion file to an MP4 with its sound.
+
+    python -m render.play MOTION.npz [--wav SPEECH.wav] --mp4 OUT.mp4 [--camera full|upper|face] [--size 512]
+
+The motion (25 or 30 fps, or any rate) is resampled to 25 fps (slerp for rotations). The audio (any rate,
+mono or stereo) is resampled to 24 kHz and cut or padded to exactly 960 samples per video frame. Encoding
+runs in a second thread while the next frame renders.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
+from render.renderer import CAMERA_PRESETS
+
+
+def load_motion_25fps(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """poses (T, 55, 3), trans (T, 3), expressions (T, 100), betas (B,) at 25 fps."""
+    from gesture.data.beat2 import read_motion
+    from gesture.rotation import resample_motion
+
+    motion = read_motion(path)
+    poses, trans, expressions = motion.poses, motion.trans, motion.expressions
+    if abs(motion.fps - MOTION_FPS) > 1e-6:
+        poses, trans, expressions = resample_motion(poses, trans, expressions, motion.fps, MOTION_FPS)
+    return poses, trans, expressions, motion.betas
+
+
+def frame_audio(wav_path: str | Path | None, n_frames: int) -> np.ndarray:
+    """(n_frames, 960) float32: the speech at 24 kHz cut into one slice per video frame (silence without a WAV)."""
+    total = n_frames * FRAME_SAMPLES
+    pcm = np.zeros(total, np.float32)
+    if wav_path is not None:
+        from gesture.data.audio import load_audio
+
+        speech = load_audio(wav_path, SAMPLE_RATE_HZ)[:total]
+        pcm[:len(speech)] = speech
+    return pcm.reshape(n_frames, FRAME_SAMPLES)
+
+
+class EncoderThread:
+    """Encodes (frame, audio) pairs on a worker thread; errors surface on `put` or `close`."""
+
+    def __init__(self, writer) -> None:
+        self.writer = writer
+        self._queue: queue.Queue = queue.Queue(maxsize=8)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="mp4-encoder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            if self._error is None:
+                try:
+                    self.writer.write(*item)
+                except BaseException as err:  # re-raised in the caller's thread
+                    self._error = err
+
+    def put(self, frame: np.ndarray, audio: np.ndarray) -> None:
+        if self._error is not None:
+            raise self._error
+        self._queue.put((frame, audio))
+
+    def close(self, commit: bool) -> None:
+        self._queue.put(None)
+        self._thread.join()
+        if self._error is not None:
+            self.writer.close(commit=False)
+            raise self._error
+        self.writer.close(commit=commit)
+
+
+def render_motion(motion_path, wav_path, mp4_path, camera="full", width=512, height=512, platform="osmesa",
+                  body_model=None, max_frames=None, start_frame=0, progress=True) -> dict:
+    """Render the motion file to `mp4_path`; returns timing numbers."""
+    from render.mp4 import Mp4Writer
+    from render.view import AvatarView, load_body
+
+    poses, trans, expressions, _ = load_motion_25fps(motion_path)
+    stop = len(poses) if max_frames is None else min(len(poses), start_frame + max_frames)
+    audio = frame_audio(wav_path, len(poses))[start_frame:stop]
+    body = load_body(body_model)
+    view = AvatarView(body, width, height, camera=camera, platform=platform)
+    encoder = EncoderThread(Mp4Writer(mp4_path, width, height))
+    t0 = time.perf_counter()
+    committed = False
+    try:
+        for i in range(start_frame, stop):
+            encoder.put(view.frame(poses[i], trans[i], expressions[i]), audio[i - start_frame])
+            if progress and (i - start_frame) % 250 == 0:
+                print(f"frame {i - start_frame}/{stop - start_frame}", file=sys.stderr, flush=True)
+        committed = True
+    finally:
+        encoder.close(commit=committed)
+        view.close()
+    wall_s = time.perf_counter() - t0
+    n = stop - start_frame
+    return {"frames": n, "video_s": n / MOTION_FPS, "wall_s": wall_s, "ms_per_frame": 1000 * wall_s / n,
+            "x_real_time": (n / MOTION_FPS) / wall_s, "vertices": body.n_vertices}
+
+
+def main(argv=None) -> int:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    p = argparse.ArgumentParser(prog="python -m render.play", description=__doc__.splitlines()[0])
+    p.add_argument("motion", help="BEAT2/SMPL-X npz with poses (T, 165), trans, expressions, mocap_frame_rate")
+    p.add_argument("--wav", help="speech to put in the audio track (any rate, mono or stereo)")
+    p.add_argument("--mp4", required=True, help="output MP4 path")
+    p.add_argument("--camera", choices=sorted(CAMERA_PRESETS), default="full")
+    p.add_argument("--size", type=int, default=512, help="square frame size in pixels (default 512)")
+    p.add_argument("--width", type=int, help="frame width (with --height; overrides --size)")
+    p.add_argument("--height", type=int)
+    p.add_argument("--platform", choices=("osmesa", "egl"), default="osmesa")
+    p.add_argument("--body-model", help="a real SMPL-X model file (SMPLX_NEUTRAL_2020.npz); default: the mannequin")
+    p.add_argument("--start", type=float, default=0.0, help="start time in seconds")
+    p.add_argument("--seconds", type=float, help="render only this many seconds")
+    args = p.parse_args(argv)
+    width, height = (args.width, args.height) if args.width else (args.size, args.size)
+    import torch
+
+    torch.set_num_threads(1)
+    from render.body_model import BodyModelError
+
+    try:
+        stats = render_motion(args.motion, args.wav, args.mp4, camera=args.camera, width=width, height=height,
+                              platform=args.platform, body_model=args.body_model,
+                              max_frames=None if args.seconds is None else int(round(args.seconds * MOTION_FPS)),
+                              start_frame=int(round(args.start * MOTION_FPS)))
+    except BodyModelError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"{args.mp4}: {stats['frames']} frames ({stats['video_s']:.2f} s) in {stats['wall_s']:.1f} s, "
+          f"{stats['ms_per_frame']:.1f} ms/frame, {stats['x_real_time']:.2f}x real time")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
