@@ -32,12 +32,14 @@ class StreamingAsr:
     """One utterance at a time: `begin(t_s)`, `feed(pcm)`, `advance()` each step, `finish()`, then poll `final`."""
 
     def __init__(self, hmm: str | None = None, lm: str | None = None, dict_path: str | None = None,
-                 budget_samples: int = 2 * 1280):
+                 budget_samples: int = 1920, max_hmm_per_frame: int = 2000, max_words_per_frame: int = 8,
+                 phone_lookahead_frames: int = 5):
         from pocketsphinx import Decoder
 
         kwargs = {k: v for k, v in dict(hmm=hmm, lm=lm, dict=dict_path).items() if v is not None}
         # fwdflat off: its second pass costs ~200 ms at end of utterance and did not help accuracy here.
-        self._decoder = Decoder(samprate=VAD_RATE_HZ, loglevel="FATAL", fwdflat=False, **kwargs)
+        self._decoder = Decoder(samprate=VAD_RATE_HZ, loglevel="FATAL", fwdflat=False, maxhmmpf=max_hmm_per_frame,
+                                maxwpf=max_words_per_frame, pl_window=phone_lookahead_frames, **kwargs)
         self.budget_samples = budget_samples
         self.reset()
 

@@ -39,7 +39,10 @@ class UserListener:
         self.vad = SileroVad()
         self.turns = VadStateMachine(vad.start_threshold, vad.stop_threshold, vad.start_s, vad.stop_s)
         self.echo = EchoGate(VAD_RATE_HZ, echo.max_delay_s, echo.margin_db, STEP_16K) if echo.mode == "gate" else None
-        self.asr = StreamingAsr(asr.hmm, asr.lm, asr.dict) if asr is not None else None
+        self.asr = None if asr is None else StreamingAsr(
+            asr.hmm, asr.lm, asr.dict, budget_samples=int(asr.budget_steps * STEP_16K),
+            max_hmm_per_frame=asr.max_hmm_per_frame, max_words_per_frame=asr.max_words_per_frame,
+            phone_lookahead_frames=asr.phone_lookahead_frames)
         self.reset()
 
     def reset(self) -> None:
