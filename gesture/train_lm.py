@@ -110,7 +110,7 @@ def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Opt
             optimizer.step()
             for k, v in losses.items():
                 sums[k] = sums.get(k, 0.0) + float(v.detach())
-            bar.set_postfix(loss=f"{float(losses['total']):.3f}")
+            bar.set_postfix(loss=f"{float(losses['total'].detach()):.3f}")
         scheduler.step()
         history.append({"epoch": epoch + 1, **{k: v / cfg.steps_per_epoch for k, v in sums.items()}})
         if progress:

@@ -1,0 +1,172 @@
+"""The streaming gesture generator: shapes, determinism, reset, causality, CFG, pad, idle gate, translation."""
+
+import numpy as np
+import pytest
+import torch
+
+from gesture.generator import GestureGenerator
+from gesture.lm.fixtures import tiny_codecs, tiny_lm
+from gesture.lm.idle import IdleGate
+from gesture.regions import LOWER_VELOCITY_SLICE
+
+torch.set_num_threads(1)
+
+
+def _generator(**kwargs) -> GestureGenerator:
+    return GestureGenerator(tiny_lm(), tiny_codecs(), **kwargs)
+
+
+def _conditions(steps, seed=0):
+    rng = np.random.default_rng(seed)
+    return [(int(rng.integers(-1, 40)), rng.integers(-1, 12, 8)) for _ in range(steps)]
+
+
+def _run(gen, conditions):
+    return [gen.step(text, audio) for text, audio in conditions]
+
+
+def test_step_outputs_shapes_and_types():
+    gen = _generator()
+    out = gen.step(3, np.arange(8))
+    assert out.tokens.shape == (20,) and out.tokens.dtype == np.int32
+    assert out.poses.shape == (2, 55, 3) and out.poses.dtype == np.float32
+    assert out.trans.shape == (2, 3) and out.expressions.shape == (2, 100)
+    assert 0.0 < out.va_prob < 1.0
+    assert np.isfinite(out.poses).all() and np.all(out.poses[:, 23:25] == 0)  # eyes are not modelled
+    assert ((out.tokens >= 0) & (out.tokens < 16)).all()
+
+
+def test_same_seed_same_motion_and_reset_replays_the_session():
+    conditions = _conditions(15)
+    a = _run(_generator(seed=7), conditions)
+    gen = _generator(seed=7)
+    b = _run(gen, conditions)
+    gen.reset()
+    c = _run(gen, conditions)
+    for x, y, z in zip(a, b, c):
+        assert np.array_equal(x.tokens, y.tokens) and np.array_equal(x.tokens, z.tokens)
+        assert np.array_equal(x.poses, y.poses) and np.array_equal(x.trans, z.trans)
+    other = _run(_generator(seed=8), conditions)
+    assert any(not np.array_equal(x.tokens, y.tokens) for x, y in zip(a, other))
+
+
+def test_changing_the_condition_at_t_never_changes_earlier_steps():
+    conditions = _conditions(20)
+    ref = _run(_generator(seed=1), conditions)
+    t = 12
+    changed = conditions[:t] + [((text + 5) % 40, (audio + 3) % 12) for text, audio in conditions[t:]]
+    out = _run(_generator(seed=1), changed)
+    for i in range(t):
+        assert np.array_equal(out[i].tokens, ref[i].tokens)
+        assert np.array_equal(out[i].poses, ref[i].poses) and np.array_equal(out[i].expressions, ref[i].expressions)
+    assert any(not np.array_equal(out[i].tokens, ref[i].tokens) for i in range(t, 20))
+
+
+def test_pad_is_never_emitted_even_when_the_model_prefers_it():
+    lm = tiny_lm()
+    with torch.no_grad():
+        lm.temporal_classifier.weight[lm.sizes.pad_token] *= 0
+        lm.temporal_classifier.weight[lm.sizes.pad_token, :] += 10.0
+        for classifier in lm.depformer_classifier:
+            classifier.weight[lm.sizes.pad_token] = 10.0
+    gen = GestureGenerator(lm, tiny_codecs())
+    for out in _run(gen, _conditions(10)):
+        assert (out.tokens != lm.sizes.pad_token).all()
+
+
+def test_cfg_leaves_lower_levels_unguided():
+    gen = _generator(cfg_scale=3.0)
+    cond, null = torch.randn(2, 17), torch.randn(2, 17)
+    logits = torch.stack([cond[0], null[0]])
+    lower = gen.sizes.lower_levels.start
+    torch.testing.assert_close(gen._pick(logits, lower)[:16], cond[0][:16])
+    torch.testing.assert_close(gen._pick(logits, 0)[:16], (null[0] + 3.0 * (cond[0] - null[0]))[:16])
+    assert gen._pick(logits, 0)[16] == float("-inf")
+
+
+def test_translation_integrates_the_decoded_root_velocity():
+    gen = _generator(initial_translation=(0.0, 1.3, 0.0))
+    out = gen.step(1, np.zeros(8, int))
+    assert np.allclose(out.trans[0], [0.0, 1.3, 0.0])
+    tokens = torch.from_numpy(out.tokens.astype(np.int64))
+    gen2 = _generator()
+    lower = gen2.decoders["lower"].step(tokens[gen2.level_slices["lower"]].view(1, -1, 1))[0].numpy()
+    velocity = lower[:, LOWER_VELOCITY_SLICE]
+    assert np.allclose(out.trans[1], out.trans[0] + velocity[0] / 25, atol=1e-5)
+    nxt = gen.step(1, np.zeros(8, int))
+    assert np.allclose(nxt.trans[0], out.trans[1] + velocity[1] / 25, atol=1e-5)
+
+
+def test_idle_gate_swaps_upper_and_face_tokens_while_silent():
+    upper = np.arange(8 * 5).reshape(8, 5) % 16
+    face = (np.arange(4 * 3).reshape(4, 3) + 1) % 16
+    gate = IdleGate(upper, face, slice(0, 8), slice(16, 20), window_samples=100, l2_threshold=0.5, rewind_below=3)
+    tokens = np.full(20, 9)
+    silent = gate.apply(tokens)
+    assert np.array_equal(silent[:8], upper[:, 0]) and np.array_equal(silent[16:], face[:, 0])
+    assert np.array_equal(silent[8:16], tokens[8:16]) and np.array_equal(tokens, np.full(20, 9))
+    gate.apply(tokens)
+    gate.apply(tokens)  # upper cursor at 3 of 5, face cursor wrapped to 0
+    gate.push_audio(np.full(1920, 0.3, np.float32))
+    assert not gate.silent
+    assert np.array_equal(gate.apply(tokens), tokens)
+    assert gate.cursors["upper"].position == 0  # 2 tokens left < rewind_below 3: rewound
+    gate.push_audio(np.zeros(1920, np.float32))
+    assert gate.silent
+
+
+def test_generator_with_idle_gate_keeps_its_own_history():
+    gate = IdleGate(np.zeros((8, 4), int), np.zeros((4, 4), int), slice(0, 8), slice(16, 20))
+    conditions = _conditions(6)
+    gated = _generator(idle_gate=gate)
+    plain = _run(_generator(), conditions)
+    silence = np.zeros(1920, np.float32)
+    for (text, audio), ref in zip(conditions, plain):
+        out = gated.step(text, audio, silence)
+        assert out.idle and np.array_equal(out.tokens, ref.tokens)  # the LM's tokens are unchanged
+
+
+def test_bad_inputs_raise_clear_errors():
+    gen = _generator()
+    with pytest.raises(ValueError, match="audio_codes: expected 8"):
+        gen.step(1, np.zeros(7, int))
+    with pytest.raises(ValueError, match="text_token"):
+        gen.step(40, np.zeros(8, int))
+    with pytest.raises(ValueError, match="audio_codes: must be in"):
+        gen.step(1, np.full(8, 12))
+    codecs = tiny_codecs(card=32)
+    with pytest.raises(ValueError, match="LM card"):
+        GestureGenerator(tiny_lm(), codecs)
+
+
+@pytest.mark.slow
+def test_soak_memory_stays_flat():
+    """45,000 steps (1 hour of motion) at the small size: the resident memory must not grow."""
+    import os
+    import resource
+
+    from agent.config import build_dataclass, load_yaml
+    from agent.spec import ConditionSpec
+    from gesture.codec.build import build_codec
+    from gesture.codec.config import load_codec_config
+    from gesture.config import LMFileConfig
+    from gesture.lm.model import GestureLM
+
+    steps = int(os.environ.get("GESTURE_SOAK_STEPS", 45_000))
+    cfg = build_dataclass(LMFileConfig, load_yaml("configs/lm/small.yaml"))
+    lm = GestureLM(cfg.lm, ConditionSpec(**vars(cfg.condition))).eval()
+    codec_cfg = load_codec_config("configs/codec/small.yaml").codec
+    gen = GestureGenerator(lm, {r: build_codec(codec_cfg, r).eval() for r in ("upper", "lower", "face")})
+    rng = np.random.default_rng(0)
+
+    def rss_mb() -> float:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+
+    samples = []
+    for i in range(steps):
+        gen.step(int(rng.integers(-1, 8192)), rng.integers(-1, 256, 8), None)
+        if i % 500 == 0:
+            samples.append(rss_mb())
+    warm = samples[len(samples) // 10]
+    assert max(samples[len(samples) // 10:]) - warm < 20, samples
