@@ -1,0 +1,158 @@
+"""MP4 output: the writer (codecs, exact A/V lengths, no partial files), render.play on the BEAT2 clip, and the
+render stage component writing the conversation with its audio."""
+
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+import torch
+
+from agent.messages import DialogueStep, GestureStep
+from agent.stage import RunContext
+from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ, STEP_SAMPLES
+from render.config import RenderConfig
+from render.mp4 import Mp4Error, Mp4Writer
+from tests.render_helpers import BEAT2_NPZ, BEAT2_WAV, needs_beat2, needs_osmesa, silhouette, silhouette_center
+
+torch.set_num_threads(1)
+
+
+def decode(path: Path) -> dict:
+    """Streams, codecs, decoded video frames and audio samples of an MP4."""
+    with av.open(str(path)) as container:
+        info = {"streams": [(s.type, s.codec_context.name) for s in container.streams],
+                "pix_fmt": container.streams.video[0].codec_context.pix_fmt,
+                "duration_s": float(container.duration) / av.time_base}
+        info["frames"] = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    with av.open(str(path)) as container:
+        audio = [f.to_ndarray() for f in container.decode(audio=0)]
+        info["audio_rate"] = container.streams.audio[0].codec_context.sample_rate
+        info["audio_channels"] = container.streams.audio[0].codec_context.channels
+    info["audio"] = np.concatenate(audio, axis=1)  # (C, N)
+    return info
+
+
+def check_av_sync(info: dict, n_frames: int) -> None:
+    assert sorted(info["streams"]) == [("audio", "aac"), ("video", "h264")]
+    assert info["pix_fmt"] == "yuv420p"
+    assert len(info["frames"]) == n_frames
+    assert abs(info["duration_s"] - n_frames / MOTION_FPS) < 1 / MOTION_FPS
+    audio_s = info["audio"].shape[1] / info["audio_rate"]
+    assert abs(audio_s - n_frames / MOTION_FPS) < 1 / MOTION_FPS  # within one frame
+
+
+def test_writer_streams_lengths_and_content(tmp_path):
+    path = tmp_path / "out.mp4"
+    tone = (0.5 * np.sin(2 * np.pi * 440 * np.arange(50 * FRAME_SAMPLES) / SAMPLE_RATE_HZ)).astype(np.float32)
+    with Mp4Writer(path, 64, 48) as writer:
+        for i in range(50):
+            writer.write(np.full((48, 64, 3), 5 * i, np.uint8), tone[i * FRAME_SAMPLES:(i + 1) * FRAME_SAMPLES])
+    info = decode(path)
+    check_av_sync(info, 50)
+    assert info["audio_rate"] == SAMPLE_RATE_HZ and info["audio_channels"] == 1
+    assert abs(info["frames"][40].mean() - 200) < 6  # the frames keep their order
+    rms = np.sqrt(np.mean(info["audio"][0, 4800:40000] ** 2))
+    assert abs(rms - 0.5 / np.sqrt(2)) < 0.03
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left
+
+
+def test_error_or_interrupt_leaves_no_file(tmp_path):
+    path = tmp_path / "out.mp4"
+    for error in (RuntimeError("boom"), KeyboardInterrupt()):
+        with pytest.raises(type(error)):
+            with Mp4Writer(path, 64, 64) as writer:
+                writer.write(np.zeros((64, 64, 3), np.uint8), np.zeros(FRAME_SAMPLES, np.float32))
+                raise error
+        assert list(tmp_path.iterdir()) == []
+
+
+def test_writer_rejects_bad_input(tmp_path):
+    with pytest.raises(Mp4Error, match="even frame size"):
+        Mp4Writer(tmp_path / "a.mp4", 63, 64)
+    with Mp4Writer(tmp_path / "b.mp4", 64, 64) as writer:
+        with pytest.raises(Mp4Error, match="960"):
+            writer.write(np.zeros((64, 64, 3), np.uint8), np.zeros(1000, np.float32))
+        writer.write(np.zeros((64, 64, 3), np.uint8), np.zeros(FRAME_SAMPLES, np.float32))
+
+
+@needs_osmesa
+@needs_beat2
+def test_render_play_on_the_beat2_clip(tmp_path):
+    from render.play import main
+
+    out = tmp_path / "clip.mp4"
+    assert main([str(BEAT2_NPZ), "--wav", str(BEAT2_WAV), "--mp4", str(out), "--size", "128",
+                 "--start", "20", "--seconds", "2"]) == 0
+    info = decode(out)
+    check_av_sync(info, 50)
+    assert np.abs(info["audio"]).max() > 0.05  # the speech is in the track
+    for frame in info["frames"][::10]:
+        mask = silhouette(frame, ground_rows=0.15)
+        assert mask.mean() > 0.02
+        cx, cy = silhouette_center(mask)
+        assert abs(cx - 0.5) < 0.12 and 0.25 < cy < 0.7
+    diffs = [np.abs(a.astype(int) - b.astype(int)).max(axis=2).mean() for a, b in
+             zip(info["frames"][:-10:10], info["frames"][10::10])]
+    assert min(diffs) > 0.05  # the avatar moves: frames 0.4 s apart differ
+
+
+def _steps(n_steps: int):
+    """DialogueStep/GestureStep pairs with a tone on the agent's channel and BEAT2-like motion."""
+    rng = np.random.default_rng(0)
+    for step in range(n_steps):
+        agent = (0.3 * np.sin(np.arange(STEP_SAMPLES) * 0.05)).astype(np.float32)
+        user = (0.1 * rng.standard_normal(STEP_SAMPLES)).astype(np.float32)
+        poses = np.zeros((2, 55, 3), np.float32)
+        poses[:, 16, 2] = -0.3 * step
+        trans = np.tile(np.float32([0.0, 1.3, 0.0]), (2, 1))
+        yield (DialogueStep(step=step, agent_pcm=agent, user_pcm=user),
+               GestureStep(step=step, poses=poses, trans=trans, expressions=np.zeros((2, 100), np.float32),
+                           tokens=np.zeros(20, np.int32)))
+
+
+@needs_osmesa
+def test_render_component_offline_writes_every_frame_with_the_conversation(tmp_path):
+    from render.process import create_component
+
+    out = tmp_path / "conversation.mp4"
+    cfg = RenderConfig(size=96, mp4_path=str(out), encoding="jpeg")
+    component = create_component(cfg, RunContext(run_dir=tmp_path, live=False, seed=0, session="t"))
+    frames = []
+    try:
+        for dialogue, gesture in _steps(5):
+            assert component.handle(dialogue) == []
+            frames += component.handle(gesture)
+        component.flush()
+    finally:
+        component.close()
+    assert [f.frame_index for f in frames] == [0, 1] * 5
+    assert frames[0].encoding == "jpeg" and bytes(frames[0].image[:2]) == b"\xff\xd8"
+    assert component.counters()["dropped_frames"] == 0
+    info = decode(out)
+    check_av_sync(info, 10)
+    expected = np.clip(next(_steps(1))[0].agent_pcm + next(_steps(1))[0].user_pcm, -1, 1)
+    assert np.abs(info["audio"][0]).max() == pytest.approx(np.abs(expected).max(), abs=0.1)
+
+
+@needs_osmesa
+def test_render_component_live_drops_late_frames_and_keeps_sync(tmp_path):
+    from render.process import create_component
+
+    out = tmp_path / "live.mp4"
+    cfg = RenderConfig(live_size=64, mp4_path=str(out), encoding="rgb24", max_lag_ms=2000)
+    component = create_component(cfg, RunContext(run_dir=tmp_path, live=True, seed=0, session="t"))
+    import time
+
+    try:
+        for dialogue, gesture in _steps(4):
+            late = gesture.step % 2 == 1
+            gesture.t_origin_ns = time.monotonic_ns() - (int(5e9) if late else 0)
+            component.handle(dialogue)
+            outputs = component.handle(gesture)
+            assert len(outputs) == (0 if late else 2)
+            assert all(o.image.shape == (64, 64, 3) for o in outputs)
+    finally:
+        component.close()
+    assert component.counters()["dropped_frames"] == 4
+    check_av_sync(decode(out), 8)  # dropped frames repeat the last one: the audio keeps its place
