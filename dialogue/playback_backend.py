@@ -1,0 +1,79 @@
+"""The agent speaks a given recording (`--speak FILE`), for co-speech gesture on real speech.
+
+Its text tokens come from the transcript when one is given (whisper json, TextGrid, or plain text
+force-aligned), else from recognising the recording; alignment runs once at start-up. The user is still
+heard (VAD, ASR for the transcript, speech codes); the recording plays on regardless (no barge-in).
+"""
+
+from pathlib import Path
+
+import numpy as np
+
+from agent.io.audio_file import load_audio
+from agent.messages import DialogueStep
+from agent.timing import SAMPLE_RATE_HZ
+from dialogue.alignment import recognize, words_from_transcript
+from dialogue.config import DialogueConfig
+from dialogue.listener import STEP_S, UserListener
+from dialogue.local_backend import check_user_pcm, load_speech_tokenizer, user_turn_from
+from dialogue.speaker import Speaker
+from dialogue.speech_tokenizer import SpeechTokenizer, StreamingSpeechEncoder
+from dialogue.text_vocab import LOCAL_SPEC
+from dialogue.transcript import Transcript
+from dialogue.tts import Utterance, WordTiming
+
+
+def recording_utterance(path: str, transcript: str | None) -> Utterance:
+    pcm = load_audio(path, SAMPLE_RATE_HZ)
+    words = words_from_transcript(Path(transcript), pcm, SAMPLE_RATE_HZ) if transcript else recognize(pcm, SAMPLE_RATE_HZ)
+    timings = tuple(WordTiming(w.word, int(round(w.start_s * SAMPLE_RATE_HZ))) for w in words
+                    if 0 <= w.start_s * SAMPLE_RATE_HZ < len(pcm))
+    return Utterance(text=" ".join(w.word for w in words), pcm=pcm, words=timings)
+
+
+class PlaybackBackend:
+    spec = LOCAL_SPEC
+
+    def __init__(self, utterance: Utterance, listener: UserListener, tokenizer: SpeechTokenizer, start_s: float = 0.0):
+        self.utterance, self.listener, self.start_s = utterance, listener, start_s
+        self.transcript = Transcript("playback")
+        self.speaker = Speaker(self.transcript)
+        self.agent_codes = StreamingSpeechEncoder(tokenizer)
+        self.user_codes = StreamingSpeechEncoder(tokenizer)
+        self.reset()
+
+    @classmethod
+    def from_config(cls, cfg: DialogueConfig, seed: int = 0) -> "PlaybackBackend":
+        p = cfg.playback
+        return cls(recording_utterance(p.speak, p.transcript), UserListener(cfg.vad, cfg.echo, cfg.asr),
+                   load_speech_tokenizer(cfg.speech_tokenizer), p.start_s)
+
+    def reset(self) -> None:
+        for part in (self.listener, self.speaker, self.agent_codes, self.user_codes):
+            part.reset()
+        self.transcript.turns.clear()
+        self._step_index = 0
+        self._started = False
+        self._last_agent_pcm: np.ndarray | None = None
+
+    def close(self) -> None:
+        pass
+
+    def step(self, user_pcm: np.ndarray) -> DialogueStep:
+        user_pcm = check_user_pcm(user_pcm)
+        t_s = self._step_index * STEP_S
+        if not self._started and t_s >= self.start_s - 1e-9:
+            self.speaker.play(self.utterance)
+            self._started = True
+        heard = self.listener.step(user_pcm, self._last_agent_pcm)
+        if heard.final_words is not None:
+            user_turn_from(heard, self.transcript).answered = None
+        spoken = self.speaker.step(t_s)
+        self._last_agent_pcm = spoken.pcm
+        self._step_index += 1
+        return DialogueStep(
+            agent_pcm=spoken.pcm, user_pcm=user_pcm, agent_codes=self.agent_codes.step(spoken.pcm),
+            user_codes=self.user_codes.step(user_pcm), text_token=spoken.text_token, text_piece=spoken.text_piece,
+            user_vad_prob=heard.vad_prob, user_vad_state=heard.vad_state, agent_speaking=spoken.speaking,
+            user_partial=heard.partial, user_words=" ".join(w.word for w in heard.final_words or []),
+            agent_interrupted=False)
