@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from gesture.nn.kv_cache import RingKVCache
-from gesture.nn.rope import RotaryEmbedding
+from gesture.nn.rope import RotaryEmbedding, rotate_with_tables
 from gesture.nn.streaming import StreamingModule, StreamingState
 
 
@@ -54,8 +54,8 @@ class StreamingMultiheadAttention(StreamingModule[SelfAttentionState]):
     """Causal self-attention with a packed q/k/v projection, RoPE and a context window.
 
     Parameters (checkpoint names): `in_projs.0.weight` (3E, E), packed as q, k, v with heads
-    contiguous inside each; `out_projs.0.weight` (E, E); no biases. Offline, positions are
-    `offset + arange(T)`; streaming, keys/values go to a RingKVCache of capacity
+    contiguous inside each; `out_projs.0.weight` (E, E); no biases. The caller gives the absolute
+    positions of the queries; streaming, keys/values go to a RingKVCache of capacity
     `context + max_chunk_steps - 1`, and each call may bring at most `max_chunk_steps` steps.
     """
 
@@ -78,22 +78,26 @@ class StreamingMultiheadAttention(StreamingModule[SelfAttentionState]):
         cache = RingKVCache(batch_size, self.num_heads, self.head_dim, capacity, device, dtype)
         return SelfAttentionState(batch_size, cache)
 
-    def forward(self, x: torch.Tensor, offset: int = 0) -> torch.Tensor:
-        """x (B, T, E) -> (B, T, E). `offset` is the absolute position of x[:, 0] offline."""
+    def forward(self, x: torch.Tensor, positions: torch.Tensor,
+                rope_tables: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """x (B, T, E) at absolute `positions` (T,) -> (B, T, E). `rope_tables` are this layer's
+        RoPE tables for `positions` (see `RotaryEmbedding.tables`), computed once per step by the caller."""
         steps = x.shape[1]
-        qkv = self.in_projs[0](x).unflatten(-1, (3, self.num_heads, self.head_dim))  # (B, T, 3, H, Dh)
-        q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # 3 x (B, H, T, Dh)
         state = self._streaming_state
         if state is not None and steps > self.max_chunk_steps:
             raise ValueError(f"streaming attention takes at most {self.max_chunk_steps} steps per call, got {steps}")
-        start = offset if state is None else state.cache.next_position
-        q_pos = torch.arange(start, start + steps, device=x.device)
+        qkv = self.in_projs[0](x).unflatten(-1, (3, self.num_heads, self.head_dim))  # (B, T, 3, H, Dh)
         if self.rope is not None:
-            q, k = self.rope(q, k, q_pos, q_pos)
-        if state is None:
-            k_pos = q_pos
+            cos, sin = rope_tables if rope_tables is not None else self.rope.tables(positions)
+            qk = rotate_with_tables(qkv[:, :, :2], cos[:, None, None], sin[:, None, None])  # (B, T, 2, H, Dh)
+            q, k = qk.permute(2, 0, 3, 1, 4).unbind(0)  # 2 x (B, H, T, Dh)
         else:
-            k, v, k_pos = state.cache.append(k, v)
-        allowed = attention_mask(q_pos, k_pos, self.context)
-        out = windowed_attention(q, k, v, allowed, self.dropout if self.training else 0.0)  # (B, H, T, Dh)
+            q, k = qkv[:, :, :2].permute(2, 0, 3, 1, 4).unbind(0)
+        v = qkv[:, :, 2].transpose(1, 2)  # (B, H, T, Dh)
+        k_pos = positions
+        if state is not None:
+            k, v, k_pos = state.cache.append(k, v, int(positions[0]))
+        allowed = attention_mask(positions, k_pos, self.context)  # every query sees at least itself
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=allowed,
+                                             dropout_p=self.dropout if self.training else 0.0)  # (B, H, T, Dh)
         return self.out_projs[0](out.transpose(1, 2).flatten(2))  # (B, T, E)

@@ -7,13 +7,15 @@ Checkpoint names per layer (`layers.N.`): `self_attn.in_projs.0.weight` (3E, E) 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from gesture.nn.attention import StreamingMultiheadAttention
 from gesture.nn.rope import DEFAULT_ROPE_PERIOD, RotaryEmbedding
-from gesture.nn.streaming import StreamingModule
+from gesture.nn.streaming import StreamingModule, StreamingState
 
 
 class LayerScale(nn.Module):
@@ -42,14 +44,26 @@ class StreamingTransformerLayer(StreamingModule):
         self.layer_scale_2 = nn.Identity() if identity else LayerScale(d_model, layer_scale_init)
         self.dropout = nn.Dropout(dropout)
 
-    def forward(self, x: torch.Tensor, offset: int = 0) -> torch.Tensor:
-        """x (B, T, E) -> (B, T, E)."""
-        x = x + self.layer_scale_1(self.dropout(self.self_attn(self.norm1(x), offset)))
+    def _drop(self, x: torch.Tensor) -> torch.Tensor:
+        return self.dropout(x) if self.training and self.dropout.p > 0 else x
+
+    def forward(self, x: torch.Tensor, positions: torch.Tensor,
+                rope_tables: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """x (B, T, E) at absolute `positions` (T,) -> (B, T, E)."""
+        x = x + self.layer_scale_1(self._drop(self.self_attn(self.norm1(x), positions, rope_tables)))
         hidden = F.gelu(self.linear1(self.norm2(x)))  # (B, T, F)
-        return x + self.layer_scale_2(self.dropout(self.linear2(self.dropout(hidden))))
+        return x + self.layer_scale_2(self._drop(self.linear2(self._drop(hidden))))
 
 
-class StreamingTransformer(StreamingModule):
+@dataclass
+class TransformerState(StreamingState):
+    next_position: int = 0
+
+    def reset(self) -> None:
+        self.next_position = 0
+
+
+class StreamingTransformer(StreamingModule[TransformerState]):
     """A stack of StreamingTransformerLayer sharing one RotaryEmbedding; (B, T, E) -> (B, T, E).
 
     Offline, `offset` is the absolute step of x[:, 0]; streaming, each layer's ring cache keeps time.
@@ -66,7 +80,15 @@ class StreamingTransformer(StreamingModule):
             for _ in range(num_layers)
         ])
 
+    def _init_streaming_state(self, batch_size: int) -> TransformerState:
+        return TransformerState(batch_size)
+
     def forward(self, x: torch.Tensor, offset: int = 0) -> torch.Tensor:
+        if self.is_streaming:
+            offset = self._streaming_state.next_position
+            self._streaming_state.next_position += x.shape[1]
+        positions = torch.arange(offset, offset + x.shape[1], device=x.device)
+        tables = self.rope.tables(positions)  # shared by every layer
         for layer in self.layers:
-            x = layer(x, offset)
+            x = layer(x, positions, tables)
         return x
