@@ -6,6 +6,7 @@ each WORD event's exact sample index to the 24 kHz timeline.
 
 import ctypes
 import ctypes.util
+import re
 import threading
 from dataclasses import dataclass
 
@@ -130,14 +131,26 @@ class EspeakTts:
             chunks, events = self._chunks, self._events
         pcm22 = np.concatenate(chunks).astype(np.float32) / 32768.0 if chunks else np.zeros(0, np.float32)
         pcm = resample_poly(pcm22, _RESAMPLE_UP, _RESAMPLE_DOWN).astype(np.float32)  # (N,) @ 24 kHz
-        return Utterance(text=text, pcm=pcm, words=tuple(_word_timings(encoded, events)))
+        return Utterance(text=text, pcm=pcm, words=tuple(_word_timings(encoded, events, len(pcm22))))
 
 
-def _word_timings(encoded: bytes, events: list[tuple[int, int, int]]) -> list[WordTiming]:
-    words = []
+def _word_timings(encoded: bytes, events: list[tuple[int, int, int]], n_samples_22k: int) -> list[WordTiming]:
+    """Every word of the text with its start sample at 24 kHz.
+
+    espeak-ng emits no WORD event for some unstressed words it joins to a neighbour ("from the", "I am");
+    those get a start interpolated by character position between the surrounding events.
+    """
     text = encoded.decode("utf-8")
-    for sample22, position, length in events:
-        word = text[position - 1: position - 1 + length].strip()
-        if word:
-            words.append(WordTiming(word=word, start_sample=int(round(sample22 * SAMPLE_RATE_HZ / ESPEAK_RATE_HZ))))
-    return words
+    words = [(m.start() + 1, m.group()) for m in re.finditer(r"[^\s.,;:!?\"()]+", text)]  # (1-based char pos, word)
+    known = {position: sample for sample, position, _ in events}
+    anchors = sorted(known.items()) + [(len(text) + 1, n_samples_22k)]
+    out = []
+    for position, word in words:
+        if position in known:
+            sample22 = known[position]
+        else:
+            before = max(((p, smp) for p, smp in anchors if p < position), default=(1, 0))
+            after = min((p, smp) for p, smp in anchors if p > position)
+            sample22 = before[1] + (after[1] - before[1]) * (position - before[0]) / max(after[0] - before[0], 1)
+        out.append(WordTiming(word=word, start_sample=int(round(sample22 * SAMPLE_RATE_HZ / ESPEAK_RATE_HZ))))
+    return out

@@ -93,33 +93,35 @@ def test_barge_in_cuts_the_agent_and_the_user_is_answered(tmp_path):
     assert any(t["start_s"] > second_user[0]["end_s"] for t in agent_turns)  # and then answered
 
 
-def test_echo_of_the_agents_own_voice_does_not_barge_in(tmp_path):
-    """Loudspeaker echo: the mic hears the agent's previous output (delayed 0.2 s, gain 0.5) after the question."""
-    from agent.stage import RunContext
+def converse_with_echo(echo_mode: str, run_dir):
+    """Loudspeaker echo: the mic hears the agent's own output (delayed 0.2 s, gain 0.5) after the question."""
     from agent.messages import AudioUser
+    from agent.stage import RunContext
     from dialogue.process import create_component
 
-    def converse(echo_mode: str):
-        comp = create_component(dialogue_cfg(echo={"mode": echo_mode}), RunContext(tmp_path / echo_mode, False, 0, "e"))
-        played = np.zeros(0, np.float32)
-        question = blocks(np.concatenate([load_24k(LIBRIVOX), silence(4.5)]))
-        delay = int(0.2 * SAMPLE_RATE_HZ)
-        outs = []
-        for i, block in enumerate(question):
-            echo = played[i * STEP_SAMPLES - delay: (i + 1) * STEP_SAMPLES - delay] if i * STEP_SAMPLES >= delay \
-                else np.zeros(STEP_SAMPLES, np.float32)
-            mic = (block + 0.5 * echo).astype(np.float32)
-            (out,) = comp.handle(AudioUser(pcm=mic, step=i))
-            outs.append(out)
-            played = np.concatenate([played, out.agent_pcm])
-        comp.close()
-        return outs
+    comp = create_component(dialogue_cfg(echo={"mode": echo_mode}), RunContext(run_dir, False, 0, "e"))
+    played = np.zeros(0, np.float32)
+    delay = int(0.2 * SAMPLE_RATE_HZ)
+    outs = []
+    for i, block in enumerate(blocks(np.concatenate([load_24k(LIBRIVOX), silence(4.5)]))):
+        echo = played[i * STEP_SAMPLES - delay: (i + 1) * STEP_SAMPLES - delay] if i * STEP_SAMPLES >= delay \
+            else np.zeros(STEP_SAMPLES, np.float32)
+        (out,) = comp.handle(AudioUser(pcm=(block + 0.5 * echo).astype(np.float32), step=i))
+        outs.append(out)
+        played = np.concatenate([played, out.agent_pcm])
+    comp.close()
+    return outs
 
-    gated = converse("gate")
+
+def test_echo_of_the_agents_own_voice_does_not_barge_in(tmp_path):
+    gated = converse_with_echo("gate", tmp_path)
     assert sum(s.agent_speaking for s in gated) * STEP_S > 2.0
     assert not any(s.agent_interrupted for s in gated)
-    ungated = converse("off")
-    assert any(s.agent_interrupted for s in ungated)  # without the gate the agent would cut itself off
+
+
+@pytest.mark.slow
+def test_without_the_echo_gate_the_agent_would_cut_itself_off(tmp_path):
+    assert any(s.agent_interrupted for s in converse_with_echo("off", tmp_path))
 
 
 def test_silence_only_gives_a_quiet_agent(tmp_path):
@@ -137,14 +139,15 @@ def test_noise_only_is_not_taken_for_speech(tmp_path):
     assert all(s.user_vad_prob < 0.5 for s in steps)
 
 
-def test_clipped_speech_is_still_understood_and_answered(tmp_path):
-    for gain, min_known_words in ((5.0, 8), (20.0, 0)):  # 1.4% and 26% of samples clipped
-        clipped = np.clip(load_24k(LIBRIVOX) * gain, -1.0, 1.0)
-        steps, transcript = run_component(dialogue_cfg(), np.concatenate([clipped, silence(3.0)]), tmp_path / str(gain))
-        (user,) = turns(transcript, "user")
-        assert len({w["word"] for w in user["words"]} & reference_words()) >= min_known_words
-        assert user["words"] and user["answered"]
-        assert turns(transcript, "agent") and any(s.agent_speaking for s in steps)
+@pytest.mark.parametrize("gain, min_known_words", [(5.0, 8), pytest.param(20.0, 0, marks=pytest.mark.slow)])
+def test_clipped_speech_is_still_understood_and_answered(gain, min_known_words, tmp_path):
+    """1.4% (x5) and 26% (x20) of the samples clipped."""
+    clipped = np.clip(load_24k(LIBRIVOX) * gain, -1.0, 1.0)
+    steps, transcript = run_component(dialogue_cfg(), np.concatenate([clipped, silence(3.0)]), tmp_path)
+    (user,) = turns(transcript, "user")
+    assert len({w["word"] for w in user["words"]} & reference_words()) >= min_known_words
+    assert user["words"] and user["answered"]
+    assert turns(transcript, "agent") and any(s.agent_speaking for s in steps)
 
 
 def test_non_finite_and_wrong_sized_input(tmp_path):

@@ -38,6 +38,7 @@ def test_text_tokens_follow_the_transcript(transcript, tmp_path):
         assert step - 1 <= word["start_s"] / STEP_S < step + 3  # at its start step (a few queue behind a burst)
 
 
+@pytest.mark.slow
 def test_without_transcript_words_come_from_recognition(tmp_path):
     steps, _ = run_component(playback_cfg(), silence(8.0), tmp_path)
     words = [w for _, w in spoken_words(steps)]
