@@ -5,6 +5,7 @@ max-delay warm-up) Moshi's text token and its own 8 audio codes, and Mimi decode
 PCM. The user side also runs the shared listener (VAD, optional ASR) for the transcript.
 """
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -70,6 +71,14 @@ class MoshiBackend:
         self.lm_gen.streaming_forever(1)
         self.transcript = Transcript("moshi")
         self.reset()
+        self.step(np.zeros(self.mimi.frame_size, np.float32))  # warm-up (and torch.compile on GPU) before ready
+        self.reset()
+
+    def _compile_context(self):
+        """torch.compile on CPU costs ~10 s at the first step and needs a C compiler: only use it on GPU."""
+        from moshi.utils.compile import no_compile
+
+        return contextlib.nullcontext() if self.device.type == "cuda" else no_compile()
 
     @classmethod
     def from_config(cls, cfg: DialogueConfig, seed: int = 0) -> "MoshiBackend":
@@ -110,16 +119,18 @@ class MoshiBackend:
         if heard.final_words is not None:
             user_turn_from(heard, self.transcript).answered = None
         x = torch.from_numpy(user_pcm).to(self.device)[None, None]  # (1, 1, 1920)
-        user_codes = self.mimi.encode(x)  # (1, 8, 1)
-        out = self.lm_gen.step(user_codes)  # None during warm-up, else (1, 1 + 8, 1)
         agent_pcm = np.zeros_like(user_pcm)
         agent_codes = np.full(N_CODES, -1, np.int32)
         text_token, piece = -1, ""
+        with self._compile_context():
+            user_codes = self.mimi.encode(x)  # (1, 8, 1)
+            out = self.lm_gen.step(user_codes)  # None during LMGen's delay warm-up, else (1, 1 + 8, 1)
+            if out is not None:
+                codes = out[:, 1:1 + N_CODES]  # (1, 8, 1)
+                agent_pcm = self.mimi.decode(codes)[0, 0].float().cpu().numpy().astype(np.float32)  # (1920,)
         if out is not None:
             text_token = int(out[0, 0, 0])
-            codes = out[:, 1:1 + N_CODES]  # (1, 8, 1)
             agent_codes = codes[0, :, 0].cpu().numpy().astype(np.int32)
-            agent_pcm = self.mimi.decode(codes)[0, 0].float().cpu().numpy().astype(np.float32)  # (1920,)
             piece = self._text_piece(text_token, t_s)
         self._last_agent_pcm = agent_pcm
         self._step_index += 1
