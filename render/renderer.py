@@ -20,8 +20,8 @@ from render.gl import select_platform
 
 SHADER_DIR = str(Path(__file__).with_name("shaders"))
 BACKGROUND_RGB = (0.86, 0.87, 0.89)
-GROUND_RGB = (0.74, 0.75, 0.77)
-SHADOW_RGB = (0.42, 0.43, 0.45)
+GROUND_RGB = (0.78, 0.79, 0.81)
+SHADOW_RGB = (0.52, 0.53, 0.56)
 GROUND_RADIUS_M = 1.6
 SHADOW_RADIUS_M = 0.55
 
@@ -153,12 +153,12 @@ class MeshRenderer:
         self._camera_node = self.scene.add(
             pyrender.PerspectiveCamera(yfov=np.radians(yfov_deg), znear=0.05, zfar=30.0,
                                        aspectRatio=width / height), pose=np.eye(4))
-        self._ground_node = self._add_disc(GROUND_RADIUS_M, 24, 96, GROUND_RGB, GROUND_RGB, 0.0)
-        self._shadow_node = self._add_disc(SHADOW_RADIUS_M, 12, 64, SHADOW_RGB, GROUND_RGB, 0.002)
+        self._ground_node = self._add_disc(GROUND_RADIUS_M, 1, 72, GROUND_RGB, GROUND_RGB, 0.0)
+        self._shadow_node = self._add_disc(SHADOW_RADIUS_M, 8, 48, SHADOW_RGB, GROUND_RGB, 0.002)
         self._mesh_node = None
         self._primitive = None
         self._gl = pyrender.OffscreenRenderer(width, height)
-        self._gl._renderer._program_cache = pyrender.shader_program.ShaderProgramCache(shader_dir=SHADER_DIR)
+        self._gl._renderer._program_cache = _program_cache(pyrender)
         self._flags = pyrender.RenderFlags.NONE
         self._msaa_applied = False
 
@@ -173,10 +173,10 @@ class MeshRenderer:
             self.scene.add(light, pose=_light_pose(yaw_deg, pitch_deg))
 
     def _add_disc(self, radius_m, n_rings, n_segments, center_rgb, rim_rgb, y_m):
+        """An unlit disc: its vertex colours are final (a soft-lit floor is nearly uniform anyway)."""
         pyrender = self._pyrender
         vertices, faces, colours = disc_mesh(radius_m, n_rings, n_segments, center_rgb, rim_rgb, y_m)
-        normals = np.tile(np.float32([0.0, 1.0, 0.0]), (len(vertices), 1))
-        primitive = pyrender.Primitive(positions=vertices, normals=normals, indices=faces,
+        primitive = pyrender.Primitive(positions=vertices, indices=faces,  # no normals: unlit (see mesh.vert)
                                        color_0=np.concatenate([colours, np.ones((len(colours), 1), np.float32)], 1),
                                        material=self._material, mode=pyrender.constants.GLTF.TRIANGLES)
         return self.scene.add(pyrender.Mesh([primitive]))
@@ -246,6 +246,27 @@ class MeshRenderer:
         if self._gl is not None:
             self._gl.delete()
             self._gl = None
+
+
+def _program_cache(pyrender):
+    """pyrender's shader cache, reading our shaders and keyed without the GL context id.
+
+    pyrender keys compiled programs by `OpenGL.contextdata.getContext()`, which on OSMesa is a fresh ctypes
+    pointer on every call: every program was recompiled (and leaked) every frame. One renderer owns one
+    context, so the key needs only the shader files and defines.
+    """
+    from pyrender.shader_program import ShaderProgram, ShaderProgramCache
+
+    class SingleContextProgramCache(ShaderProgramCache):
+        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+            key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
+            if key not in self._program_cache:
+                paths = [None if name is None else str(Path(self.shader_dir) / name)
+                         for name in (vertex_shader, fragment_shader, geometry_shader)]
+                self._program_cache[key] = ShaderProgram(*paths, defines=defines)
+            return self._program_cache[key]
+
+    return SingleContextProgramCache(shader_dir=SHADER_DIR)
 
 
 def _light_pose(yaw_deg: float, pitch_deg: float) -> np.ndarray:

@@ -13,7 +13,7 @@ from agent.stage import RunContext
 from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ, STEP_SAMPLES
 from render.config import RenderConfig
 from render.mp4 import Mp4Error, Mp4Writer
-from tests.render_helpers import BEAT2_NPZ, BEAT2_WAV, needs_beat2, needs_osmesa, silhouette, silhouette_center
+from render.testing import BEAT2_NPZ, BEAT2_WAV, needs_beat2, needs_osmesa, silhouette, silhouette_center
 
 torch.set_num_threads(1)
 

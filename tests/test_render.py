@@ -11,7 +11,7 @@ from render.avatar import build_avatar
 from render.lbs import Skinner
 from render.renderer import CameraRig, MeshRenderer
 from render.view import AvatarView
-from tests.render_helpers import needs_osmesa, silhouette, silhouette_center
+from render.testing import needs_osmesa, silhouette, silhouette_center
 
 torch.set_num_threads(1)
 pytestmark = needs_osmesa

@@ -150,3 +150,40 @@ def _wait_for(predicate, timeout_s: float) -> None:
         if time.monotonic() > deadline:
             raise TimeoutError("condition not reached")
         time.sleep(0.1)
+
+
+def _free_port_block(n: int) -> int:
+    import socket
+
+    for base in range(20000, 40000, 97):
+        try:
+            socks = []
+            for port in range(base, base + n):
+                sock = socket.socket()
+                socks.append(sock)
+                sock.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sock in socks:
+                sock.close()
+    raise RuntimeError("no free ports")
+
+
+def test_stages_split_across_two_launchers_over_tcp(talk, tmp_path):
+    """A main host (io, render, supervisor) and a worker host (dialogue, gesture) on loopback tcp."""
+    wav, n_steps = talk
+    tcp = ["--set", "bus.transport=tcp", "--set", f"bus.base_port={_free_port_block(6)}"]
+    worker = launch(["--replay", str(wav), "--fast", "--worker", "--set", "run.spawn=[dialogue, gesture]", *tcp],
+                    tmp_path / "worker")
+    main = launch(["--replay", str(wav), "--fast", "--set", "run.spawn=[io, render]", *tcp], tmp_path / "main")
+    code, output = finish(main)
+    worker_code, worker_output = finish(worker)
+    assert code == 0, output
+    assert worker_code == 0, worker_output
+    assert [r["step"] for r in received(tmp_path / "main", "gesture.step")] == list(range(n_steps))
+    latency = json.loads((tmp_path / "main" / "latency.json").read_text())
+    assert set(latency["clock_offsets"]) == {"io", "dialogue", "gesture", "render"}
+    assert all(abs(c["offset_ns"]) <= c["uncertainty_ns"] + 1_000_000 for c in latency["clock_offsets"].values())
+    assert (tmp_path / "worker" / "gesture.log").exists() and not (tmp_path / "main" / "gesture.log").exists()

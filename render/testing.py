@@ -1,4 +1,4 @@
-"""Shared helpers of the render tests: GL availability, the BEAT2 clip, silhouette measures."""
+"""Helpers of the render tests: GL availability, the shared BEAT2 clip, silhouette measures."""
 
 import ctypes.util
 from pathlib import Path
