@@ -29,7 +29,7 @@ from agent.io.sources import NoAudioDevice, check_input_device  # noqa: E402
 from agent.latency import format_table  # noqa: E402
 from agent.sections import AppConfig, load_app_config  # noqa: E402
 from agent.stage import RunContext  # noqa: E402
-from agent.supervisor import Supervisor  # noqa: E402
+from agent.supervisor import Supervisor, run_worker  # noqa: E402
 from agent.timing import SAMPLE_RATE_HZ  # noqa: E402
 
 DEFAULT_CONFIG = Path(__file__).parent / "configs" / "default.yaml"
@@ -47,6 +47,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--fast", action="store_true", help="as fast as possible and lossless (offline)")
     p.add_argument("--seed", type=int, help="random seed (offline runs are deterministic with it)")
     p.add_argument("--report", metavar="DIR", help="report directory (default runs/<time>/)")
+    p.add_argument("--worker", action="store_true",
+                   help="only start this host's stages (run.spawn); another host's launch.py supervises")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="YAML config (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one option, e.g. --set render.size=384 (repeatable)")
@@ -79,6 +81,8 @@ def mode_overrides(args: argparse.Namespace, speak_duration_s: float | None) -> 
 
 def check_inputs(app: AppConfig) -> None:
     """Fail before any process starts, with one line, on a bad recording or a missing microphone."""
+    if "io" not in app.run.local_stages:
+        return
     if app.io.source == "replay":
         if not app.io.replay_path:
             raise ConfigError("io.replay_path: no recording to replay (pass --replay FILE or --mic)")
@@ -101,6 +105,8 @@ def main(argv=None) -> int:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(app))), sort_keys=False))
     run = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
+    if args.worker:
+        return run_worker(app, run)
     supervisor = Supervisor(app, run)
     code = supervisor.run()
     summary = supervisor.latency.write(run_dir, supervisor.counters(),

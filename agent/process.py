@@ -42,12 +42,16 @@ class StageLaunch:
 
 
 def limit_threads() -> None:
-    """One BLAS/torch thread per process: the machine has 2 cores and rendering needs most of them."""
+    """One BLAS/torch thread per process: the machine has 2 cores and rendering needs most of them.
+
+    The variables are read when numpy or torch load; torch is pinned again once a component has loaded it
+    (a stage that never uses torch does not pay for importing it).
+    """
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
-    import torch
-
-    torch.set_num_threads(1)
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
 
 
 def load_factory(path: str) -> Callable[..., Any]:
@@ -67,6 +71,7 @@ def stage_main(launch: StageLaunch) -> None:
     try:
         section = getattr(launch.app, launch.stage)
         component, source = _split(load_factory(launch.factory)(section, launch.run))
+        limit_threads()
         topology = Topology.of(launch.stage, launch.pipeline, speaker=launch.app.io.speaker)
         runner = StageRunner(topology, launch.app, launch.run, launch.ipc_dir, component, source)
     except Exception:

@@ -77,18 +77,28 @@ class RunConfig:
 
     `components` replaces a stage's component factory (`stage: "module:function"`, called with the stage's
     section config and the RunContext), to plug in your own dialogue system, generator or renderer.
+    `spawn` lists the stages this host starts (default: all of `stages`); the others run on another host under
+    `launch.py --worker`, reached over `tcp://` endpoints.
     """
 
     live: bool = True
     seed: int = 0
     report_dir: Optional[str] = None  # default: runs/<time>/
     stages: tuple[str, ...] = STAGES
+    spawn: Optional[tuple[str, ...]] = None
     components: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def local_stages(self) -> tuple[str, ...]:
+        return self.stages if self.spawn is None else tuple(s for s in self.stages if s in self.spawn)
 
     def __post_init__(self):
         if not self.stages or self.stages[0] != "io" or list(self.stages) != [s for s in STAGES if s in self.stages]:
             raise ConfigError(f"run.stages: must start with io and keep the order {', '.join(STAGES)}; "
                               f"got {list(self.stages)}")
+        unknown = sorted(set(self.spawn or ()) - set(self.stages))
+        if unknown:
+            raise ConfigError(f"run.spawn: {unknown[0]} is not in run.stages {list(self.stages)}")
         for stage, factory in self.components.items():
             if stage not in STAGES:
                 raise ConfigError(f"run.components.{stage}: unknown stage (stages: {', '.join(STAGES)})")
@@ -108,6 +118,10 @@ class AppConfig:
     gesture: GestureConfig = field(default_factory=GestureConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     dashboard: DashboardConfig = field(default_factory=DashboardConfig)
+
+    def __post_init__(self):
+        if self.run.spawn is not None and self.bus.transport == "ipc" and not self.bus.endpoints:
+            raise ConfigError("run.spawn: stages on other hosts need bus.transport: tcp (or tcp bus.endpoints)")
 
 
 def load_app_config(path: Path | str, overrides: Sequence[str] = ()) -> AppConfig:

@@ -217,7 +217,7 @@ class StageRunner:
             log.exception("handler failed on %s step %d from %s; skipped", msg.topic, msg.step, msg.source)
             return
         for out in outputs:
-            out.session, out.step, out.t_origin_ns = self.run_ctx.session, msg.step, msg.t_origin_ns
+            out.session, out.step, out.t_origin_ns = msg.session, msg.step, msg.t_origin_ns
             out.stamps = {**msg.stamps, self.name: time.monotonic_ns()}
             self._publish(out)
         if self.name == self.topology.sink and msg.topic == self.topology.sink_primary_topic:

@@ -42,7 +42,7 @@ class RunFailed(RuntimeError):
 
 @dataclass
 class StageStatus:
-    process: mp.Process
+    process: Optional[mp.Process]  # None: the stage runs on another host (`launch.py --worker`)
     state: str = "starting"
     last_beat_s: float = field(default_factory=time.monotonic)
     counters: dict = field(default_factory=dict)
@@ -94,12 +94,8 @@ class Supervisor:
         self.interrupted = True
 
     def _spawn(self) -> None:
-        ctx = mp.get_context("spawn")
-        for stage in self.pipeline:
-            launch = StageLaunch(stage, self.pipeline, self.app, self.run_ctx, self.ipc_dir, self.factories[stage])
-            process = ctx.Process(target=stage_main, args=(launch,), name=f"stage-{stage}", daemon=False)
-            process.start()
-            self.stages[stage] = StageStatus(process)
+        local = spawn_stages(self.app, self.run_ctx, self.ipc_dir, self.factories)
+        self.stages = {stage: StageStatus(local.get(stage)) for stage in self.pipeline}
 
     # ---- phases ----------------------------------------------------------------------------------------------
     def _wait_ready(self) -> None:
@@ -164,7 +160,7 @@ class Supervisor:
     def _check_processes(self) -> None:
         now = time.monotonic()
         for name, status in self.stages.items():
-            code = status.process.exitcode
+            code = status.process.exitcode if status.process else None
             if code is not None:
                 raise RunFailed(f"stage '{name}' died (exit code {code}). Last lines of its log:\n"
                                 f"{_tail(self.run_ctx.run_dir / f'{name}.log')}")
@@ -179,24 +175,61 @@ class Supervisor:
     def _stop_all(self) -> None:
         deadline = time.monotonic() + self.app.bus.stop_timeout_s
         self._send(Command.STOP)
-        alive = lambda: [s.process for s in self.stages.values() if s.process.is_alive()]  # noqa: E731
-        while alive() and time.monotonic() < deadline:
+        processes = [s.process for s in self.stages.values() if s.process]
+        while any(p.is_alive() for p in processes) and time.monotonic() < deadline:
             self.sub.socket.poll(20, zmq.POLLIN) and self.sub.poll_into_queue()
             self._consume()
             self._send(Command.STOP)
-        for process in alive():
-            process.terminate()
-        kill_at = time.monotonic() + KILL_GRACE_S
-        for process in alive():
-            process.join(max(0.0, kill_at - time.monotonic()))
-        for process in alive():
-            process.kill()
-            process.join(1.0)
+        terminate(processes)
         self.sub.poll_into_queue()
         self._consume()
 
     def counters(self) -> dict[str, dict]:
         return {name: status.counters for name, status in self.stages.items()}
+
+
+def spawn_stages(app: AppConfig, run: RunContext, ipc_dir: Path, factories: dict[str, str]) -> dict[str, mp.Process]:
+    """Start this host's stages (`run.spawn`, default all), each in its own spawned process."""
+    ctx = mp.get_context("spawn")
+    processes = {}
+    for stage in app.run.local_stages:
+        launch = StageLaunch(stage, tuple(app.run.stages), app, run, ipc_dir, factories[stage])
+        processes[stage] = ctx.Process(target=stage_main, args=(launch,), name=f"stage-{stage}")
+        processes[stage].start()
+    return processes
+
+
+def terminate(processes: list[mp.Process]) -> None:
+    """SIGTERM what is still alive, then SIGKILL after a short grace."""
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    kill_at = time.monotonic() + KILL_GRACE_S
+    for process in processes:
+        process.join(max(0.0, kill_at - time.monotonic()))
+    for process in processes:
+        if process.is_alive():
+            process.kill()
+            process.join(1.0)
+
+
+def run_worker(app: AppConfig, run: RunContext) -> int:
+    """`launch.py --worker`: start this host's stages and wait; the supervisor on the main host drives them."""
+    stop = []
+    previous = {sig: signal.signal(sig, lambda *_: stop.append(1)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    processes = spawn_stages(app, run, Path(tempfile.gettempdir()), {**COMPONENT_FACTORIES, **app.run.components})
+    log.info("worker running %s; waiting for the supervisor", ", ".join(processes))
+    try:
+        while not stop and any(p.is_alive() for p in processes.values()):
+            time.sleep(0.1)
+    finally:
+        terminate(list(processes.values()))
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    failed = {name: p.exitcode for name, p in processes.items() if p.exitcode not in (0, None)}
+    for name, code in failed.items():
+        log.error("stage '%s' exited with code %s; see %s", name, code, run.run_dir / f"{name}.log")
+    return 130 if stop else (1 if failed else 0)
 
 
 def _tail(path: Path, lines: int = LOG_TAIL_LINES) -> str:
