@@ -242,9 +242,9 @@ _TORSO_KEYS = np.array([
     (-0.505, 0.000, 0.000, 0.000),
     (-0.495, 0.000, 0.080, 0.060),
     (-0.470, 0.002, 0.130, 0.088),
-    (-0.420, 0.004, 0.156, 0.100),
-    (-0.350, 0.006, 0.160, 0.102),
-    (-0.280, 0.008, 0.148, 0.096),
+    (-0.420, 0.000, 0.156, 0.094),
+    (-0.350, 0.000, 0.158, 0.094),
+    (-0.280, 0.004, 0.146, 0.092),
     (-0.200, 0.010, 0.136, 0.094),
     (-0.110, 0.012, 0.146, 0.101),
     (-0.030, 0.010, 0.160, 0.106),
@@ -299,9 +299,7 @@ def _neck() -> Part:
 def _left_arm(rest: np.ndarray) -> list[Part]:
     shoulder, elbow, wrist = rest[J["left_shoulder"]], rest[J["left_elbow"]], rest[J["left_wrist"]]
     parts = []
-    v, f = ellipsoid(shoulder - np.array([0.008, 0.0, 0.0]), np.array([0.052, 0.052, 0.052]), 20, 10)
-    parts.append(rigid_part("shoulder", v, f, J["left_shoulder"], N_JOINTS, SHIRT))
-    v, f = capsule(shoulder, elbow, 0.050, 0.041, 20, 4, 8)
+    v, f = capsule(shoulder, elbow, 0.050, 0.041, 20, 5, 8)  # its round top is the shoulder ball
     parts.append(rigid_part("upper_arm", v, f, J["left_shoulder"], N_JOINTS, SHIRT))
     v, f = ellipsoid(elbow, np.array([0.040, 0.040, 0.040]), 16, 8)
     parts.append(rigid_part("elbow", v, f, J["left_elbow"], N_JOINTS, SKIN))

@@ -1,6 +1,7 @@
 """Render a BEAT2/SMPL-X motion file to an MP4 with its sound.
 
     python -m render.play MOTION.npz [--wav SPEECH.wav] --mp4 OUT.mp4 [--camera full|upper|face] [--size 512]
+    python -m render.play MOTION.npz --still OUT.png --start 12.0 [--camera face]
 
 The motion (25 or 30 fps, or any rate) is resampled to 25 fps (slerp for rotations). The audio (any rate,
 mono or stereo) is resampled to 24 kHz and cut or padded to exactly 960 samples per video frame. Encoding
@@ -108,12 +109,33 @@ def render_motion(motion_path, wav_path, mp4_path, camera="full", width=512, hei
             "x_real_time": (n / MOTION_FPS) / wall_s, "vertices": body.n_vertices}
 
 
+def render_still(motion_path, png_path, at_s: float, camera="full", width=512, height=512, platform="osmesa",
+                 body_model=None) -> Path:
+    """Render the frame at `at_s` seconds to a PNG (the camera tracks the second before it, as in the video)."""
+    from PIL import Image
+
+    from render.view import AvatarView, load_body
+
+    poses, trans, expressions, _ = load_motion_25fps(motion_path)
+    target = min(int(round(at_s * MOTION_FPS)), len(poses) - 1)
+    view = AvatarView(load_body(body_model), width, height, camera=camera, platform=platform)
+    try:
+        for i in range(max(0, target - MOTION_FPS), target + 1):
+            image = view.frame(poses[i], trans[i], expressions[i])
+    finally:
+        view.close()
+    Image.fromarray(image).save(png_path)
+    return Path(png_path)
+
+
 def main(argv=None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     p = argparse.ArgumentParser(prog="python -m render.play", description=__doc__.splitlines()[0])
     p.add_argument("motion", help="BEAT2/SMPL-X npz with poses (T, 165), trans, expressions, mocap_frame_rate")
     p.add_argument("--wav", help="speech to put in the audio track (any rate, mono or stereo)")
-    p.add_argument("--mp4", required=True, help="output MP4 path")
+    out = p.add_mutually_exclusive_group(required=True)
+    out.add_argument("--mp4", help="output MP4 path")
+    out.add_argument("--still", metavar="PNG", help="write one frame (at --start) as a PNG instead of a video")
     p.add_argument("--camera", choices=sorted(CAMERA_PRESETS), default="full")
     p.add_argument("--size", type=int, default=512, help="square frame size in pixels (default 512)")
     p.add_argument("--width", type=int, help="frame width (with --height; overrides --size)")
@@ -130,6 +152,11 @@ def main(argv=None) -> int:
     from render.body_model import BodyModelError
 
     try:
+        if args.still:
+            render_still(args.motion, args.still, args.start, camera=args.camera, width=width, height=height,
+                         platform=args.platform, body_model=args.body_model)
+            print(f"{args.still}: frame at {args.start:.2f} s, camera {args.camera}")
+            return 0
         stats = render_motion(args.motion, args.wav, args.mp4, camera=args.camera, width=width, height=height,
                               platform=args.platform, body_model=args.body_model,
                               max_frames=None if args.seconds is None else int(round(args.seconds * MOTION_FPS)),
