@@ -96,3 +96,66 @@ def test_replay_is_split_into_whole_steps_with_a_silent_tail():
     while not source.exhausted:
         got.append(source.next_block(0)[0])
     np.testing.assert_array_equal(np.concatenate(got)[: len(pcm)], pcm)
+
+
+class FakeStreamTime:
+    def __init__(self, now_s, adc_s):
+        self.currentTime, self.inputBufferAdcTime = now_s, adc_s
+
+
+class FakeSoundDevice:
+    """Stands in for PortAudio (no sound card here): records the streams it opens."""
+
+    def __init__(self):
+        self.streams = []
+
+    def InputStream(self, **kw):  # noqa: N802 (sounddevice's name)
+        return self._stream(kw)
+
+    def OutputStream(self, **kw):  # noqa: N802
+        return self._stream(kw)
+
+    def _stream(self, kw):
+        stream = type("Stream", (), {"start": lambda s: None, "stop": lambda s: None, "close": lambda s: None})()
+        stream.kw = kw
+        self.streams.append(stream)
+        return stream
+
+
+def test_microphone_delivers_80ms_blocks_stamped_at_their_last_sample(monkeypatch):
+    import time
+
+    from agent.io import sources
+
+    fake = FakeSoundDevice()
+    monkeypatch.setattr(sources, "_sounddevice", lambda: fake)
+    mic = sources.MicSource(device=None)
+    kw = fake.streams[0].kw
+    assert (kw["samplerate"], kw["blocksize"], kw["channels"]) == (SAMPLE_RATE_HZ, STEP_SAMPLES, 1)
+    block = np.random.default_rng(0).standard_normal((STEP_SAMPLES, 1)).astype(np.float32)
+    before = time.monotonic_ns()
+    kw["callback"](block, STEP_SAMPLES, FakeStreamTime(10.0, 9.9), None)  # first sample captured 100 ms ago
+    pcm, captured_ns = mic.next_block(timeout_s=1)
+    np.testing.assert_array_equal(pcm, block[:, 0])
+    expected = before - 100_000_000 + (STEP_SAMPLES - 1) * 1_000_000_000 // SAMPLE_RATE_HZ
+    assert abs(captured_ns - expected) < 20_000_000
+    assert mic.next_block(timeout_s=0.01) is None
+
+
+def test_speaker_plays_steps_in_order_and_drops_the_oldest_when_far_behind(monkeypatch):
+    from agent.io import speaker as speaker_module
+    from agent.io import sources
+
+    fake = FakeSoundDevice()
+    monkeypatch.setattr(sources, "_sounddevice", lambda: fake)
+    monkeypatch.setattr(speaker_module, "_sounddevice", lambda: fake)
+    out = speaker_module.Speaker(device=None)
+    fill = fake.streams[0].kw["callback"]
+    out.play(np.full(STEP_SAMPLES, 0.1, np.float32))
+    out.play(np.full(STEP_SAMPLES, 0.2, np.float32))
+    buf = np.zeros((STEP_SAMPLES + 100, 1), np.float32)
+    fill(buf, len(buf), None, None)
+    assert np.all(buf[:STEP_SAMPLES, 0] == np.float32(0.1)) and np.all(buf[STEP_SAMPLES:, 0] == np.float32(0.2))
+    for _ in range(speaker_module.MAX_BUFFER_STEPS + 3):
+        out.play(np.ones(STEP_SAMPLES, np.float32))
+    assert out.dropped_samples > 0
