@@ -169,4 +169,6 @@ def test_soak_memory_stays_flat():
         if i % 500 == 0:
             samples.append(rss_mb())
     warm = samples[len(samples) // 10]
+    print(f"soak: {steps} steps, RSS MB first {samples[0]:.1f}, after warm-up {warm:.1f}, last {samples[-1]:.1f}, "
+          f"max {max(samples):.1f}")
     assert max(samples[len(samples) // 10:]) - warm < 20, samples

@@ -17,12 +17,22 @@ def guide(cond: torch.Tensor, null: torch.Tensor, scale: float) -> torch.Tensor:
     return null + scale * (cond - null)
 
 
+FIRST_CANDIDATES = 128  # sort only this many first; the full sort runs when the nucleus may be larger
+
+
 def top_p_probs(logits: torch.Tensor, temperature: float, top_p: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sorted, truncated probabilities and their token ids, each (..., V).
+    """Sorted, truncated probabilities and their token ids, each (..., N) with N <= V.
 
     A token is kept while the cumulative probability mass *before* it is <= top_p (so the first is always kept).
+    The nucleus is searched among the FIRST_CANDIDATES most probable tokens, and among all tokens when the mass
+    before the last candidate is still <= top_p: the kept set is the same as with a full sort.
     """
     probs = torch.softmax(logits.float() / temperature, dim=-1)
+    if probs.shape[-1] > FIRST_CANDIDATES:
+        sorted_probs, order = probs.topk(FIRST_CANDIDATES, dim=-1)
+        mass_before = sorted_probs.cumsum(dim=-1) - sorted_probs
+        if not bool((mass_before[..., -1] <= top_p).any()):
+            return sorted_probs.masked_fill(mass_before > top_p, 0.0), order
     sorted_probs, order = probs.sort(dim=-1, descending=True)
     mass_before = sorted_probs.cumsum(dim=-1) - sorted_probs
     return sorted_probs.masked_fill(mass_before > top_p, 0.0), order
