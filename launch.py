@@ -43,6 +43,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     source.add_argument("--replay", metavar="FILE", help="replay a recording as the user's voice")
     p.add_argument("--speak", metavar="FILE", help="the agent speaks this recording (playback backend)")
     p.add_argument("--headless", action="store_true", help="no dashboard and no speaker")
+    p.add_argument("--host", metavar="ADDR",
+                   help="serve the dashboard on this address (default 127.0.0.1: this machine only)")
     p.add_argument("--mp4", metavar="OUT", help="write the rendered conversation to this MP4")
     p.add_argument("--fast", action="store_true", help="as fast as possible and lossless (offline)")
     p.add_argument("--seed", type=int, help="random seed (offline runs are deterministic with it)")
@@ -70,6 +72,8 @@ def mode_overrides(args: argparse.Namespace, speak_duration_s: float | None) -> 
         out += [f"render.mp4_path={yaml.safe_dump(args.mp4).strip()}"]
     if args.headless:
         out += ["dashboard.enabled=false", "io.speaker=false"]
+    if args.host:
+        out += [f"dashboard.host={yaml.safe_dump(args.host).strip()}"]
     offline = args.fast or (args.headless and not args.mic)
     out += ["run.live=false" if offline else "run.live=true"]
     if args.seed is not None:

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Literal, Optional, Sequence
 
 from agent.config import ConfigError, apply_override, build_dataclass, load_yaml, parse_override
+from agent.dashboard.config import DashboardConfig
 from dialogue.config import DialogueConfig
 from gesture.config import GestureConfig
 from render.config import RenderConfig
@@ -62,13 +63,6 @@ class IoConfig:
     def __post_init__(self):
         if self.tail_silence_s < 0:
             raise ConfigError(f"io.tail_silence_s: must be >= 0, got {self.tail_silence_s}")
-
-
-@dataclass(frozen=True)
-class DashboardConfig:
-    enabled: bool = True
-    host: str = "127.0.0.1"
-    port: int = 8998
 
 
 @dataclass(frozen=True)

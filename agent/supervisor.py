@@ -24,6 +24,7 @@ import zmq
 
 from agent.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
+from agent.dashboard.launcher import DASHBOARD, DashboardProcess
 from agent.latency import LatencyRecorder
 from agent.messages import Command, Control, Log, Metrics
 from agent.process import COMPONENT_FACTORIES, StageLaunch, stage_main
@@ -59,6 +60,7 @@ class Supervisor:
         self.interrupted = False
         self.error: Optional[str] = None
         self.sink_done = False
+        self.dashboard: Optional[DashboardProcess] = None
 
     # ---- lifecycle -------------------------------------------------------------------------------------------
     def run(self) -> int:
@@ -68,11 +70,14 @@ class Supervisor:
         self.pub = Publisher(ctx, stage_address(SUPERVISOR, self.app.bus, self.ipc_dir), SUPERVISOR,
                              lossless=True)
         addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
+        self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
+        addresses += [self.dashboard.address] if self.dashboard else []
         self.sub = Subscriber(ctx, addresses, ["control", "metrics", "log"], live_queue=None)
         try:
             self._spawn()
             self._wait_ready()
             self._sync_clocks()
+            self._wait_for_start()
             self._send(Command.START)
             log.info("started: %s", " → ".join(self.pipeline))
             self._watch()
@@ -115,8 +120,15 @@ class Supervisor:
                 self._send(Command.PING, {"to": stage, "t0": time.monotonic_ns()})
             self._tick(0.02)
 
+    def _wait_for_start(self) -> None:
+        """`dashboard.wait_for_start`: the run starts when the page's Start button is pressed."""
+        if self.dashboard and self.app.dashboard.wait_for_start:
+            log.info("waiting for Start on the dashboard")
+            while not (self.interrupted or self.dashboard.start_requested or self.dashboard.stop_requested):
+                self._tick()
+
     def _watch(self) -> None:
-        while not (self.interrupted or self.sink_done):
+        while not (self.interrupted or self.sink_done or (self.dashboard and self.dashboard.stop_requested)):
             self._tick()
 
     def _tick(self, duration_s: float = 0.05) -> None:
@@ -143,6 +155,9 @@ class Supervisor:
                 log.log(logging.getLevelName(msg.level.upper()), "[%s] %s", msg.source, msg.text)
 
     def _on_control(self, msg: Control) -> None:
+        if self.dashboard and msg.source == DASHBOARD:
+            self.dashboard.on_control(msg)  # the page's Start / Stop
+            return
         status = self.stages.get(msg.source)
         if status is None:
             return
@@ -159,6 +174,9 @@ class Supervisor:
 
     def _check_processes(self) -> None:
         now = time.monotonic()
+        if self.dashboard and self.dashboard.process.exitcode is not None:
+            raise RunFailed(f"the dashboard died (exit code {self.dashboard.process.exitcode}). Last lines of its "
+                            f"log:\n{_tail(self.dashboard.log_path)}")
         for name, status in self.stages.items():
             code = status.process.exitcode if status.process else None
             if code is not None:
@@ -176,6 +194,7 @@ class Supervisor:
         deadline = time.monotonic() + self.app.bus.stop_timeout_s
         self._send(Command.STOP)
         processes = [s.process for s in self.stages.values() if s.process]
+        processes += [self.dashboard.process] if self.dashboard else []
         while any(p.is_alive() for p in processes) and time.monotonic() < deadline:
             self.sub.socket.poll(20, zmq.POLLIN) and self.sub.poll_into_queue()
             self._consume()

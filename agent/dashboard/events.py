@@ -203,7 +203,7 @@ class RunState:
     def phase(self) -> str:
         if self.ended:
             return self.ended
-        if self.started:
+        if self.started or any(s in ("running", "done") for s in self.stage_states.values()):
             return "running"
         return "ready" if all(s == "ready" for s in self.stage_states.values()) else "starting"
 

@@ -1,0 +1,50 @@
+"""The supervisor's side of the dashboard: start its process, read the page's Start/Stop, notice if it dies.
+
+    dashboard = DashboardProcess.start(app, run, ipc_dir)   # None when dashboard.enabled is false
+    subscriber addresses += [dashboard.address]
+    dashboard.on_control(msg)        # a Control from source "dashboard" -> sets start_requested / stop_requested
+    dashboard.process, .log_path     # to notice that it died, and to terminate it with the stages
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+from pathlib import Path
+from typing import Optional
+
+from agent.bus import stage_address
+from agent.dashboard.process import DASHBOARD, DashboardLaunch, dashboard_main, page_url
+from agent.messages import Command, Control
+from agent.sections import AppConfig
+from agent.stage import RunContext
+
+log = logging.getLogger(DASHBOARD)
+
+
+class DashboardProcess:
+    def __init__(self, process: mp.Process, address: str, log_path: Path):
+        self.process, self.address, self.log_path = process, address, log_path
+        self.start_requested = False
+        self.stop_requested = False
+
+    @classmethod
+    def start(cls, app: AppConfig, run: RunContext, ipc_dir: Path) -> Optional["DashboardProcess"]:
+        cfg = app.dashboard
+        if not cfg.enabled:
+            return None
+        if not cfg.loopback_only:
+            log.warning("the dashboard listens on %s:%d: anyone who can reach this machine can watch the "
+                        "conversation and start or stop the agent", cfg.host, cfg.port)
+        launch = DashboardLaunch(app, run, ipc_dir)
+        process = mp.get_context("spawn").Process(target=dashboard_main, args=(launch,), name=DASHBOARD)
+        process.start()
+        shown = page_url(cfg.host, cfg.port) if cfg.port else f"see {run.run_dir / 'dashboard.url'}"
+        log.info("dashboard: %s%s", shown, " (the run waits for its Start button)" if cfg.wait_for_start else "")
+        return cls(process, stage_address(DASHBOARD, app.bus, ipc_dir), launch.log_path)
+
+    def on_control(self, msg: Control) -> None:
+        if msg.command == Command.START:
+            self.start_requested = True
+        elif msg.command == Command.STOP:
+            self.stop_requested = True

@@ -1,0 +1,195 @@
+"""The dashboard process: bus subscriber (live, drop-oldest) + aiohttp server, in one asyncio loop.
+
+It listens to every stage's `control` (heartbeats with counters, EOS, PONG), the dialogue's `dialogue.step`,
+the renderer's `render.frame` and the sink's `metrics`, turns them into page events (agent.dashboard.events)
+and pushes them to the open pages. Its only publication is `control` from source "dashboard": the page's
+START / STOP, and heartbeats. It exits on the supervisor's STOP, on SIGTERM, or when the supervisor dies.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zmq
+
+from agent.bus import Publisher, Subscriber, stage_address
+from agent.clock import ClockSync
+from agent.dashboard.events import (BINARY_AUDIO, BINARY_FRAME, LatencyMeter, RunState, Transcript, frame_jpeg,
+                                    hello_event, pack_binary, pcm_int16, vad_event)
+from agent.messages import Command, Control, DialogueStep, Message, Metrics, RenderFrame
+from agent.sections import AppConfig
+from agent.stage import SUPERVISOR, RunContext
+
+log = logging.getLogger("dashboard")
+
+DASHBOARD = "dashboard"
+TOPICS = ("control", "metrics", "dialogue.step", "render.frame")
+LIVE_QUEUE_MESSAGES = 64  # data messages waiting here; older ones are dropped and counted
+POLL_S = 0.01
+COUNTERS_EVERY_S = 0.5
+URL_FILE = "dashboard.url"
+EXIT_STARTUP_FAILED = 3
+
+
+@dataclass(frozen=True)
+class DashboardLaunch:
+    """Everything the dashboard process needs; picklable for multiprocessing spawn."""
+
+    app: AppConfig
+    run: RunContext
+    ipc_dir: Path
+
+    @property
+    def log_path(self) -> Path:
+        return self.run.run_dir / f"{DASHBOARD}.log"
+
+
+class DashboardBridge:
+    """Bus side: reads messages, keeps the page state, hands events, frames and audio to the hub."""
+
+    def __init__(self, launch: DashboardLaunch):
+        app = launch.app
+        self.cfg, self.bus, self.live = app.dashboard, app.bus, launch.run.live
+        self.pipeline = tuple(app.run.stages)
+        self.session = launch.run.session
+        ctx = zmq.Context.instance()
+        self.pub = Publisher(ctx, stage_address(DASHBOARD, app.bus, launch.ipc_dir), DASHBOARD, lossless=True)
+        addresses = [stage_address(s, app.bus, launch.ipc_dir) for s in (*self.pipeline, SUPERVISOR)]
+        self.sub = Subscriber(ctx, addresses, TOPICS, live_queue=LIVE_QUEUE_MESSAGES)
+        self.transcript = Transcript(self.cfg.max_turns)
+        self.latency = LatencyMeter(self.pipeline, self.cfg.history_steps)
+        self.run_state = RunState(self.pipeline, self.pipeline[-1], self.cfg.wait_for_start)
+        self.clock = ClockSync()
+        self.hub = None  # set by serve()
+        self.stopping = False
+        self.frames_in = 0
+        self.bad_frames = 0
+
+    def snapshot(self) -> list[dict]:
+        return [hello_event(self.pipeline, self.live, self.session), self.run_state.event(),
+                *self.transcript.snapshot(), *self.latency.snapshot(), self.counters_event()]
+
+    def counters_event(self) -> dict:
+        own = {"received_frames": self.frames_in, "dropped": self.sub.dropped, "lost": self.sub.lost,
+               "decode_errors": self.sub.decode_errors, "bad_frames": self.bad_frames,
+               **(self.hub.counters() if self.hub else {})}
+        return self.run_state.counters_event(own)
+
+    def command(self, name: str) -> None:
+        """A page pressed Start or Stop: tell the supervisor."""
+        self.pub.send(Control(command=Command(name), session=self.session))
+
+    def poll(self) -> None:
+        """Take everything that arrived and push it to the pages."""
+        if self.sub.socket.poll(0, zmq.POLLIN):
+            self.sub.poll_into_queue()
+        while self.sub.controls:
+            self._on_control(self.sub.controls.popleft())
+        while self.sub.queue:
+            self._on_data(self.sub.queue.popleft())
+
+    def _on_control(self, msg: Control) -> None:
+        if msg.command == Command.PONG and "t0" in msg.detail:
+            d = msg.detail
+            self.clock.add(msg.source, d["t0"], d["t1"], d["t2"], time.monotonic_ns())
+        if msg.source == SUPERVISOR and msg.command == Command.STOP:
+            self.stopping = True
+        for event in self.run_state.on_control(msg):
+            self.hub.broadcast(event)
+
+    def _on_data(self, msg: Message) -> None:
+        if isinstance(msg, RenderFrame):
+            self._on_frame(msg)
+        elif isinstance(msg, DialogueStep):
+            for event in (*self.transcript.on_step(msg), vad_event(msg)):
+                self.hub.broadcast(event)
+            if msg.agent_speaking or msg.text_piece:
+                self.hub.broadcast_audio(pack_binary(BINARY_AUDIO, msg.step, 0, pcm_int16(msg.agent_pcm)))
+        elif isinstance(msg, Metrics):
+            for event in self.latency.on_metrics(msg, self.clock.offsets_ns()):
+                self.hub.broadcast(event)
+
+    def _on_frame(self, msg: RenderFrame) -> None:
+        self.frames_in += 1
+        if not self.hub.pages:
+            return
+        try:
+            jpeg = frame_jpeg(msg, self.cfg.jpeg_quality)
+        except (ValueError, OSError) as e:
+            self.bad_frames += 1
+            log.warning("skipped render frame of step %d: %s", msg.step, e)
+            return
+        self.hub.broadcast_frame(pack_binary(BINARY_FRAME, msg.step, msg.frame_index, jpeg))
+
+    def heartbeat(self) -> None:
+        self.pub.send(Control(command=Command.HEARTBEAT, session=self.session,
+                              detail={"state": "running", "counters": self.counters_event()["dashboard"]}))
+
+    def close(self) -> None:
+        self.pub.close()
+        self.sub.close()
+
+
+async def serve(launch: DashboardLaunch) -> None:
+    from agent.dashboard.server import Hub, make_app, start_server
+
+    bridge = DashboardBridge(launch)
+    bridge.hub = Hub(bridge.snapshot, bridge.command)
+    loop = asyncio.get_running_loop()
+    loop.add_signal_handler(signal.SIGTERM, lambda: setattr(bridge, "stopping", True))
+    cfg = launch.app.dashboard
+    runner, port = await start_server(make_app(bridge.hub), cfg.host, cfg.port)
+    url = page_url(cfg.host, port)
+    (launch.run.run_dir / URL_FILE).write_text(url + "\n")
+    log.info("serving %s", url)
+    next_beat = next_counters = 0.0
+    try:
+        while not bridge.stopping and os.getppid() != 1:
+            bridge.poll()
+            now = time.monotonic()
+            if now >= next_counters:
+                bridge.hub.broadcast(bridge.counters_event())
+                next_counters = now + COUNTERS_EVERY_S
+            if now >= next_beat:
+                bridge.heartbeat()
+                next_beat = now + launch.app.bus.heartbeat_s
+            await asyncio.sleep(POLL_S)
+        bridge.poll()
+        bridge.hub.broadcast(bridge.run_state.event())
+        await asyncio.sleep(0.1)  # let the pages receive the last events
+    finally:
+        await runner.cleanup()
+        bridge.close()
+
+
+def page_url(host: str, port: int) -> str:
+    """The address to open; a wildcard bind is opened through this machine's loopback."""
+    shown = {"0.0.0.0": "127.0.0.1", "::": "[::1]", "": "127.0.0.1"}.get(host, host)
+    if ":" in shown and not shown.startswith("["):
+        shown = f"[{shown}]"
+    return f"http://{shown}:{port}/"
+
+
+def dashboard_main(launch: DashboardLaunch) -> None:
+    """The process entry point (multiprocessing spawn target)."""
+    from agent.process import _die_with_parent, _redirect_output, limit_threads
+
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group; the supervisor decides
+    _redirect_output(launch.log_path)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s dashboard %(levelname)s %(name)s: %(message)s")
+    limit_threads()
+    try:
+        asyncio.run(serve(launch))
+    except OSError as e:
+        log.error("%s", e)
+        sys.exit(EXIT_STARTUP_FAILED)
+    log.info("stopped")

@@ -1,0 +1,172 @@
+"""The dashboard's web server (aiohttp): the page, its static assets, a state snapshot and one WebSocket per page.
+
+The WebSocket pushes JSON events (text messages) and frames / agent audio (binary messages, see
+`events.pack_binary`). Every page has its own sender: when a page falls behind, only the newest frame waits
+for it (older ones are skipped and counted), so a slow browser never holds up the bus or other pages.
+A page sends `{"type": "control", "command": "start" | "stop"}` and `{"type": "audio", "enabled": bool}`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import logging
+from pathlib import Path
+from typing import Callable, Iterable, Optional
+from urllib.parse import urlsplit
+
+from aiohttp import WSMsgType, web
+
+from agent.dashboard.events import Event
+
+log = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).parent / "static"
+MAX_PENDING_EVENTS = 2000  # a page this far behind is disconnected; it reconnects and gets a snapshot
+MAX_PENDING_AUDIO = 25  # steps of agent audio (2 s)
+COMMANDS = ("start", "stop")
+
+
+class Page:
+    """One connected page and its pending messages."""
+
+    def __init__(self, ws: web.WebSocketResponse):
+        self.ws = ws
+        self.events: collections.deque[str] = collections.deque()
+        self.audio: collections.deque[bytes] = collections.deque(maxlen=MAX_PENDING_AUDIO)
+        self.frame: Optional[bytes] = None
+        self.wants_audio = False
+        self.skipped_frames = 0
+        self.wake = asyncio.Event()
+
+    def push_event(self, text: str) -> None:
+        if len(self.events) >= MAX_PENDING_EVENTS:
+            asyncio.ensure_future(self.ws.close(message=b"too far behind"))
+            return
+        self.events.append(text)
+        self.wake.set()
+
+    def push_frame(self, data: bytes) -> None:
+        if self.frame is not None:
+            self.skipped_frames += 1
+        self.frame = data
+        self.wake.set()
+
+    def push_audio(self, data: bytes) -> None:
+        if self.wants_audio:
+            self.audio.append(data)
+            self.wake.set()
+
+    async def send_pending(self) -> None:
+        while not self.ws.closed:
+            await self.wake.wait()
+            self.wake.clear()
+            while self.events:
+                await self.ws.send_str(self.events.popleft())
+            while self.audio:
+                await self.ws.send_bytes(self.audio.popleft())
+            if self.frame is not None:
+                frame, self.frame = self.frame, None
+                await self.ws.send_bytes(frame)
+
+
+class Hub:
+    """Fans events and frames out to every open page; passes the pages' commands to `on_command`."""
+
+    def __init__(self, snapshot: Callable[[], Iterable[Event]], on_command: Callable[[str], None]):
+        self.snapshot = snapshot
+        self.on_command = on_command
+        self.pages: set[Page] = set()
+        self.skipped_frames_closed = 0  # frames skipped by pages that have since closed
+
+    def broadcast(self, event: Event) -> None:
+        if self.pages:
+            text = json.dumps(event, separators=(",", ":"))
+            for page in self.pages:
+                page.push_event(text)
+
+    def broadcast_frame(self, data: bytes) -> None:
+        for page in self.pages:
+            page.push_frame(data)
+
+    def broadcast_audio(self, data: bytes) -> None:
+        for page in self.pages:
+            page.push_audio(data)
+
+    def counters(self) -> dict[str, int]:
+        return {"pages": len(self.pages),
+                "skipped_frames": self.skipped_frames_closed + sum(p.skipped_frames for p in self.pages)}
+
+    async def websocket(self, request: web.Request) -> web.WebSocketResponse:
+        if not same_origin(request):
+            raise web.HTTPForbidden(text="the dashboard accepts WebSockets from its own page only")
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 16)
+        await ws.prepare(request)
+        page = Page(ws)
+        for event in self.snapshot():
+            page.push_event(json.dumps(event, separators=(",", ":")))
+        self.pages.add(page)
+        sender = asyncio.ensure_future(page.send_pending())
+        try:
+            async for msg in ws:
+                if msg.type == WSMsgType.TEXT:
+                    self._on_page_message(page, msg.data)
+        finally:
+            self.pages.discard(page)
+            self.skipped_frames_closed += page.skipped_frames
+            sender.cancel()
+        return ws
+
+    def _on_page_message(self, page: Page, text: str) -> None:
+        try:
+            msg = json.loads(text)
+        except ValueError:
+            log.warning("ignored a page message that is not JSON: %.80r", text)
+            return
+        if not isinstance(msg, dict):
+            return
+        if msg.get("type") == "control" and msg.get("command") in COMMANDS:
+            log.info("page asked to %s", msg["command"])
+            self.on_command(msg["command"])
+        elif msg.get("type") == "audio":
+            page.wants_audio = bool(msg.get("enabled"))
+        else:
+            log.warning("ignored an unknown page message: %.80r", text)
+
+
+def same_origin(request: web.Request) -> bool:
+    """A browser sends Origin on a WebSocket: only the dashboard's own page may connect (no other web site)."""
+    origin = request.headers.get("Origin")
+    return origin is None or urlsplit(origin).netloc == request.host
+
+
+def make_app(hub: Hub) -> web.Application:
+    app = web.Application()
+
+    async def index(_request: web.Request) -> web.FileResponse:
+        return web.FileResponse(STATIC_DIR / "index.html")
+
+    async def state(_request: web.Request) -> web.Response:
+        return web.json_response({"events": list(hub.snapshot()), "counters": hub.counters()})
+
+    app.router.add_get("/", index)
+    app.router.add_get("/state.json", state)
+    app.router.add_get("/ws", hub.websocket)
+    app.router.add_static("/static/", STATIC_DIR)
+    return app
+
+
+async def start_server(app: web.Application, host: str, port: int) -> tuple[web.AppRunner, int]:
+    """Listen on host:port; returns the runner and the bound port (port 0: any free one)."""
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, host, port)
+    try:
+        await site.start()
+    except OSError as e:
+        await runner.cleanup()
+        raise OSError(f"dashboard: cannot listen on {host}:{port} ({e.strerror or e}); "
+                      f"set another dashboard.port or stop what uses it") from None
+    bound = runner.addresses[0][1]
+    return runner, bound

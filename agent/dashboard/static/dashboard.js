@@ -1,0 +1,264 @@
+// The dashboard page: one WebSocket; JSON events (text) and frames / agent audio (binary, 8-byte header:
+// u8 kind, pad, u16 frame index, u32 step). No libraries, nothing fetched from elsewhere.
+"use strict";
+
+const STEP_S = 0.08;
+const KIND_FRAME = 1, KIND_AUDIO = 2;
+const HISTORY = 250;  // steps on the charts (20 s)
+const STAGE_COLORS = ["#8e9aaf", "#4c9be8", "#f0a13a", "#5cb85c", "#c678dd"];
+const TURN_COLORS = {user: "#4c9be8", agent: "#5cb85c", overlap: "#e8a23c", none: "#2a323b"};
+
+// Read by the tests and handy in the console.
+const dash = window.dashboard = {
+  frames: 0, lastFrameStep: -1, latencySamples: 0, chartDraws: 0, chartLastStep: -1, words: 0,
+  phase: "connecting", pipeline: [], audioSteps: 0,
+};
+
+const $ = (id) => document.getElementById(id);
+let ws = null;
+let latency = [];          // recent latency events
+let turnHistory = [];      // recent floor states
+let chartDirty = false, stripDirty = false;
+let waitForStart = false;
+
+// ---- connection -----------------------------------------------------------------------------------------
+function connect() {
+  ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  ws.binaryType = "arraybuffer";
+  ws.onopen = () => { $("connection").textContent = "connected"; $("connection").className = "conn up";
+                      if (audio.ctx) send({type: "audio", enabled: true}); };
+  ws.onclose = () => { $("connection").textContent = "offline"; $("connection").className = "conn";
+                       setTimeout(connect, 1000); };
+  ws.onmessage = (m) => (typeof m.data === "string" ? onEvent(JSON.parse(m.data)) : onBinary(m.data));
+}
+
+function send(obj) { if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj)); }
+
+function onEvent(e) {
+  switch (e.type) {
+    case "hello": onHello(e); break;
+    case "run": onRun(e); break;
+    case "turn": onTurn(e); break;
+    case "turn_removed": { const el = turnEls.get(e.id); if (el) el.remove(); turnEls.delete(e.id); break; }
+    case "vad": onVad(e); break;
+    case "latency": onLatency(e); break;
+    case "counters": onCounters(e); break;
+  }
+}
+
+function onBinary(buf) {
+  const view = new DataView(buf);
+  const kind = view.getUint8(0), index = view.getUint16(2, true), step = view.getUint32(4, true);
+  if (kind === KIND_FRAME) onFrame(step, index, new Blob([new Uint8Array(buf, 8)], {type: "image/jpeg"}));
+  else if (kind === KIND_AUDIO) onAudio(step, new Int16Array(buf, 8));
+}
+
+// ---- run state and controls -----------------------------------------------------------------------------
+function onHello(e) {
+  dash.pipeline = e.pipeline;
+  latency = []; turnHistory = []; chartDirty = stripDirty = true;
+  turnEls.forEach((el) => el.remove()); turnEls.clear();
+  $("legend").innerHTML = e.pipeline.map((s, i) => `<span><i style="background:${STAGE_COLORS[i]}"></i>${s}</span>`)
+    .join("") + `<span><i style="background:#fff"></i>end to end</span>` + (e.live ? "" : "<span>(offline run)</span>");
+}
+
+function onRun(e) {
+  dash.phase = e.phase;
+  waitForStart = e.wait_for_start;
+  const label = {ready: waitForStart ? "ready: press Start" : "ready"}[e.phase] || e.phase;
+  $("phase").textContent = label;
+  $("phase").className = "badge " + e.phase;
+  $("start").disabled = !(waitForStart && e.phase === "ready");
+  $("stop").disabled = !["starting", "ready", "running"].includes(e.phase);
+  renderStageStates(e.stages);
+}
+
+$("start").onclick = () => { send({type: "control", command: "start"}); $("start").disabled = true; ensureAudio(); };
+$("stop").onclick = () => { send({type: "control", command: "stop"}); $("stop").disabled = true; };
+$("sound").onchange = (ev) => {
+  if (ev.target.checked) ensureAudio();
+  send({type: "audio", enabled: ev.target.checked});
+};
+
+// ---- video ----------------------------------------------------------------------------------------------
+let decoding = false, nextFrame = null;
+
+function onFrame(step, index, blob) {
+  if (decoding) { nextFrame = [step, index, blob]; return; }  // keep only the newest while one decodes
+  decoding = true;
+  createImageBitmap(blob).then((bitmap) => {
+    const canvas = $("video");
+    if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
+      canvas.width = bitmap.width; canvas.height = bitmap.height;
+    }
+    canvas.getContext("2d").drawImage(bitmap, 0, 0);
+    bitmap.close();
+    dash.frames += 1; dash.lastFrameStep = step;
+    $("frameinfo").textContent = `step ${step} · frame ${index} · t = ${(step * STEP_S).toFixed(2)} s`;
+    playAudioUpTo(step);
+  }).catch(() => {}).finally(() => {
+    decoding = false;
+    if (nextFrame) { const f = nextFrame; nextFrame = null; onFrame(...f); }
+  });
+}
+
+// ---- the agent's voice, synced to the video by step ------------------------------------------------------
+// A step's audio is held until that step's frame is on screen, then scheduled right after the audio
+// already playing; a step whose frames were dropped plays with the next frame shown.
+const audio = {ctx: null, pending: new Map(), playhead: 0, played: -1};
+const MAX_AHEAD_S = 0.3;
+
+function ensureAudio() {
+  if (!audio.ctx) audio.ctx = new AudioContext({sampleRate: 24000});
+  audio.ctx.resume();
+  $("sound").checked = true;
+  send({type: "audio", enabled: true});
+}
+
+function onAudio(step, pcm) {
+  if (!audio.ctx) return;
+  audio.pending.set(step, pcm);
+  for (const s of audio.pending.keys()) if (s < step - 50) audio.pending.delete(s);
+}
+
+function playAudioUpTo(step) {
+  if (!audio.ctx) return;
+  const steps = [...audio.pending.keys()].filter((s) => s <= step).sort((a, b) => a - b);
+  for (const s of steps) {
+    const pcm = audio.pending.get(s);
+    audio.pending.delete(s);
+    if (s <= audio.played || s < step - 3) continue;  // too old: skipping keeps the voice on the picture
+    const now = audio.ctx.currentTime;
+    if (audio.playhead - now > MAX_AHEAD_S) continue;
+    const buffer = audio.ctx.createBuffer(1, pcm.length, 24000);
+    const data = buffer.getChannelData(0);
+    for (let i = 0; i < pcm.length; i++) data[i] = pcm[i] / 32768;
+    const src = audio.ctx.createBufferSource();
+    src.buffer = buffer; src.connect(audio.ctx.destination);
+    const at = Math.max(now + 0.01, audio.playhead);
+    src.start(at);
+    audio.playhead = at + buffer.duration;
+    audio.played = s; dash.audioSteps += 1;
+  }
+}
+
+// ---- transcript -----------------------------------------------------------------------------------------
+const turnEls = new Map();
+
+function onTurn(t) {
+  let el = turnEls.get(t.id);
+  const box = $("turns");
+  const atBottom = box.scrollHeight - box.scrollTop - box.clientHeight < 40;
+  if (!el) {
+    el = document.createElement("div");
+    el.className = `msg ${t.speaker}`;
+    turnEls.set(t.id, el);
+    box.appendChild(el);
+  }
+  const who = `<div class="who">${t.speaker === "user" ? "you" : "agent"} · ${(t.start_step * STEP_S).toFixed(1)} s</div>`;
+  const words = t.words.map((w, i) => `<span${i === t.interrupted_at ? ' class="cut"' : ""}>${esc(w)}</span>`);
+  const partial = t.partial ? ` <span class="partial">${esc(t.partial)}…</span>` : "";
+  const tag = t.interrupted_at !== null ? '<span class="tag">✂ interrupted</span>' : "";
+  el.innerHTML = who + words.join(" ") + partial + tag;
+  dash.words = [...turnEls.values()].reduce((n, e) => n + e.querySelectorAll("span:not(.tag)").length, 0);
+  if (atBottom) box.scrollTop = box.scrollHeight;
+}
+
+function esc(s) { return s.replace(/[&<>"]/g, (c) => ({"&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;"}[c])); }
+
+// ---- voice activity and the floor -----------------------------------------------------------------------
+function onVad(e) {
+  $("vadbar").style.width = `${Math.round(e.prob * 100)}%`;
+  $("vadstate").textContent = e.state;
+  $("agentspeaking").className = "dot" + (e.agent_speaking ? " on" : "");
+  $("agentstate").textContent = e.interrupted ? "interrupted" : e.agent_speaking ? "speaking" : "silent";
+  $("turnstate").textContent = e.turn; $("turnstate").className = "turn " + e.turn;
+  turnHistory.push(e.turn);
+  if (turnHistory.length > HISTORY) turnHistory.shift();
+  stripDirty = true;
+}
+
+function drawStrip() {
+  const c = $("turnstrip"), g = c.getContext("2d"), w = c.width / HISTORY;
+  g.fillStyle = TURN_COLORS.none; g.fillRect(0, 0, c.width, c.height);
+  turnHistory.forEach((t, i) => { g.fillStyle = TURN_COLORS[t]; g.fillRect((HISTORY - turnHistory.length + i) * w, 0, Math.ceil(w), c.height); });
+}
+
+// ---- latency chart --------------------------------------------------------------------------------------
+function onLatency(e) {
+  latency.push(e);
+  if (latency.length > HISTORY) latency.shift();
+  dash.latencySamples += 1;
+  chartDirty = true;
+}
+
+function niceMax(v) {
+  for (const m of [40, 80, 120, 160, 200, 240, 400, 600, 800, 1200, 1600, 2000, 4000]) if (v <= m) return m;
+  return Math.ceil(v / 4000) * 4000;
+}
+
+function drawChart() {
+  const c = $("chart");
+  const dpr = window.devicePixelRatio || 1;
+  const width = Math.round(c.clientWidth * dpr), height = Math.round(c.clientHeight * dpr);
+  if (c.width !== width || c.height !== height) { c.width = width; c.height = height; }
+  const g = c.getContext("2d");
+  const left = 44 * dpr, bottom = 18 * dpr, top = 6 * dpr;
+  const plotW = width - left - 8 * dpr, plotH = height - bottom - top;
+  g.clearRect(0, 0, width, height);
+  const yMax = niceMax(Math.max(1, ...latency.map((e) => e.e2e_ms)));
+  const x = (i) => left + (i + HISTORY - latency.length) * plotW / (HISTORY - 1);
+  const y = (ms) => top + plotH * (1 - Math.min(ms, yMax) / yMax);
+  g.font = `${11 * dpr}px system-ui`; g.fillStyle = "#8a96a3"; g.strokeStyle = "#2a323b"; g.lineWidth = 1;
+  for (let k = 0; k <= 4; k++) {
+    const ms = yMax * k / 4;
+    g.beginPath(); g.moveTo(left, y(ms)); g.lineTo(width, y(ms)); g.stroke();
+    g.fillText(`${ms} ms`, 2 * dpr, y(ms) + 4 * dpr);
+  }
+  g.fillText("step →", width - 50 * dpr, height - 4 * dpr);
+  if (latency.length) {
+    const base = latency.map(() => 0);
+    dash.pipeline.forEach((stage, si) => {   // stacked: each stage's share on top of the previous ones
+      g.beginPath();
+      const share = (e) => Math.max(0, e.stages[stage] || 0);
+      latency.forEach((e, i) => g.lineTo(x(i), y(base[i] + share(e))));
+      for (let i = latency.length - 1; i >= 0; i--) g.lineTo(x(i), y(base[i]));
+      g.closePath(); g.fillStyle = STAGE_COLORS[si] + "cc"; g.fill();
+      latency.forEach((e, i) => { base[i] += share(e); });
+    });
+    g.beginPath(); g.strokeStyle = "#ffffff"; g.lineWidth = 1.5 * dpr;
+    latency.forEach((e, i) => (i ? g.lineTo(x(i), y(e.e2e_ms)) : g.moveTo(x(i), y(e.e2e_ms))));
+    g.stroke();
+    const sorted = latency.map((e) => e.e2e_ms).sort((a, b) => a - b);
+    const pct = (p) => sorted[Math.min(sorted.length - 1, Math.floor(p / 100 * sorted.length))].toFixed(0);
+    $("latencystats").textContent = `end to end: last ${latency[latency.length - 1].e2e_ms.toFixed(0)} ms · ` +
+      `p50 ${pct(50)} · p95 ${pct(95)} ms over ${latency.length} steps`;
+    dash.chartLastStep = latency[latency.length - 1].step;
+  }
+  dash.chartDraws += 1;
+}
+
+// ---- counters -------------------------------------------------------------------------------------------
+let stageStates = {};
+
+function renderStageStates(states) { stageStates = states || stageStates; }
+
+function onCounters(e) {
+  const rows = Object.entries(e.stages).map(([name, c]) => [name, stageStates[name] || "", c]);
+  rows.push(["dashboard", `${e.dashboard.pages || 0} page(s)`, {handled: e.dashboard.received_frames,
+    dropped: (e.dashboard.dropped || 0) + (e.dashboard.skipped_frames || 0), lost: e.dashboard.lost,
+    decode_errors: e.dashboard.decode_errors}]);
+  $("counters").tBodies[0].innerHTML = rows.map(([name, state, c]) => {
+    const errors = (c.decode_errors || 0) + (c.handler_errors || 0);
+    const cell = (v) => `<td${v ? ' class="bad"' : ""}>${v || 0}</td>`;
+    return `<tr><td>${name}</td><td>${state}</td><td>${c.handled || 0}</td>${cell(c.dropped)}${cell(c.lost)}` +
+      `${cell(c.dropped_frames)}${cell(errors)}</tr>`;
+  }).join("");
+}
+
+// ---- main -----------------------------------------------------------------------------------------------
+setInterval(() => {
+  if (chartDirty) { chartDirty = false; drawChart(); }
+  if (stripDirty) { stripDirty = false; drawStrip(); }
+}, 100);
+connect();
