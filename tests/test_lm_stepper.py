@@ -40,9 +40,9 @@ def _stream_logits(engine, tokens, text, audio):
     return torch.stack(out, dim=1)  # (B, T, K, V)
 
 
-@pytest.mark.parametrize("guided", [False, True])
-def test_streaming_equals_full_forward_over_200_steps(guided):
-    model = tiny_lm(va_use_face_logits=True)
+@pytest.mark.parametrize("guided, contexts", [(False, (6, 9)), (True, (6, 9)), (True, (25, 50))])
+def test_streaming_equals_full_forward_over_200_steps(guided, contexts):
+    model = tiny_lm(va_use_face_logits=True, self_context_steps=contexts[0], cross_context_steps=contexts[1])
     assert STEPS > 3 * model.sizes.cross_context_steps  # every ring wraps several times
     tokens, text, audio = _sequence(model, STEPS)
     full = _full_logits(model, tokens, text, audio, 2, guided)
