@@ -53,7 +53,7 @@ CHECK_STEPS = 3
 
 
 def _candidates(directories: list[Path]) -> list[Path]:
-    files = {p.resolve() for d in directories if d is not None and d.is_dir() for p in d.rglob("*.safetensors")}
+    files = {p for d in directories if d.is_dir() for p in d.rglob("*.safetensors")}
     return sorted(files)
 
 
@@ -76,7 +76,7 @@ def _region_of_file(path: Path) -> Optional[str]:
 
 
 def find_codecs(directories: list[Path], given: dict[str, Optional[Path]]) -> list[Path]:
-    """Codec files: the given ones, then one per missing region found under `directories`."""
+    """Codec files: the given ones, then one per missing region found under `directories` (by input width)."""
     chosen = {region: Path(path) for region, path in given.items() if path is not None}
     found: dict[str, list[Path]] = {}
     for path in _candidates(directories):
@@ -102,7 +102,7 @@ def convert_release(experiment_dir: Path, out: Path, *, codec_dir: Optional[Path
     experiment_dir, out = Path(experiment_dir), Path(out)
     config = read_experiment_config(experiment_dir)
     glm_path = Path(glm) if glm is not None else find_glm(experiment_dir)
-    codec_paths = find_codecs([d for d in (codec_dir, experiment_dir) if d is not None], codec_files or {})
+    codec_paths = find_codecs([Path(codec_dir) if codec_dir is not None else experiment_dir], codec_files or {})
     codec_sources = assign_regions([read_checkpoint(p) for p in codec_paths])
     codec_cfgs = codec_configs(codec_sources, config)
     codecs = {region: convert_codec(codec_sources[region], codec_cfgs[region], region) for region in REGIONS}
@@ -204,7 +204,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--experiment-dir", type=Path, required=True,
                    help="the release experiment: config.yaml, speaker_id_to_index.json, tokens_idle_slices/, GLM")
-    p.add_argument("--codec-dir", type=Path, help="where the three codec checkpoints are (searched recursively)")
+    p.add_argument("--codec-dir", type=Path, help="where the three codec checkpoints are, searched recursively (default: --experiment-dir)")
     p.add_argument("--glm", type=Path, help="the GLM safetensors (default: the one under --experiment-dir)")
     for region in REGIONS:
         p.add_argument(f"--{region}", type=Path, help=f"the {region} codec safetensors (default: found by shape)")
