@@ -1,0 +1,288 @@
+"""The live dashboard: page events from bus messages, the server, and a real run watched in headless Chromium."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import socket
+import struct
+import subprocess
+import time
+from pathlib import Path
+
+import aiohttp
+import numpy as np
+import pytest
+import soundfile as sf
+from PIL import Image
+
+from agent.config import ConfigError, build_dataclass
+from agent.dashboard.browser import HeadlessChromium, find_chromium
+from agent.dashboard.config import DashboardConfig
+from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER, LatencyMeter, RunState, Transcript,
+                                    frame_jpeg, pack_binary, turn_state)
+from agent.dashboard.server import Hub, make_app, start_server
+from agent.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
+from tests.test_runtime import finish, launch, leftovers
+
+PIPELINE = ("io", "dialogue", "gesture", "render")
+
+
+def step(n: int, **fields) -> DialogueStep:
+    zeros = np.zeros(1920, np.float32)
+    codes = np.zeros(8, np.int32)
+    return DialogueStep(step=n, agent_pcm=zeros, user_pcm=zeros, agent_codes=codes, user_codes=codes, **fields)
+
+
+# ---- transcript -------------------------------------------------------------------------------------------------
+def test_agent_words_form_a_turn_and_a_barge_in_marks_the_word_being_spoken():
+    transcript = Transcript(max_turns=10)
+    for n, word in enumerate(["Hello", "there,", "how"]):
+        transcript.on_step(step(n, text_piece=word, agent_speaking=True))
+    events = transcript.on_step(step(3, text_piece="are", agent_speaking=True, agent_interrupted=True,
+                                     user_vad_state=VadState.SPEAKING))
+    assert events == [{"type": "turn", "id": 0, "speaker": "agent", "start_step": 0,
+                       "words": ["Hello", "there,", "how", "are"], "partial": "", "interrupted_at": 3,
+                       "final": True}]
+    (later,) = transcript.on_step(step(4, text_piece="Sure", agent_speaking=True))
+    assert (later["id"], later["words"], later["interrupted_at"]) == (1, ["Sure"], None)
+
+
+def test_user_turn_shows_the_partial_hypothesis_until_its_words_are_final():
+    transcript = Transcript(max_turns=10)
+    assert transcript.on_step(step(0, user_vad_state=VadState.SPEAKING)) == []
+    (partial,) = transcript.on_step(step(1, user_partial="what is"))
+    assert (partial["speaker"], partial["words"], partial["partial"], partial["final"]) == ("user", [], "what is",
+                                                                                            False)
+    assert transcript.on_step(step(2, user_partial="what is")) == []  # unchanged: no event
+    (final,) = transcript.on_step(step(3, user_words="what is the time"))
+    assert (final["id"], final["words"], final["partial"], final["final"]) == (partial["id"],
+                                                                              ["what", "is", "the", "time"], "", True)
+    assert [t["words"] for t in transcript.snapshot()] == [["what", "is", "the", "time"]]
+
+
+def test_a_hypothesis_dropped_without_words_removes_its_turn():
+    transcript = Transcript(max_turns=10)
+    (turn,) = transcript.on_step(step(0, user_partial="uh"))
+    assert transcript.on_step(step(1)) == [{"type": "turn_removed", "id": turn["id"]}]
+    assert transcript.snapshot() == []
+
+
+def test_an_agent_turn_ends_after_a_pause_and_turns_are_bounded():
+    transcript = Transcript(max_turns=3)
+    transcript.on_step(step(0, text_piece="one", agent_speaking=True))
+    events = [e for n in range(1, AGENT_GAP_STEPS + 1) for e in transcript.on_step(step(n))]
+    assert events == [{**events[-1], "words": ["one"], "final": True}]
+    for n in range(5):
+        transcript.on_step(step(100 + n * 20, text_piece=f"w{n}"))
+        for k in range(AGENT_GAP_STEPS):
+            transcript.on_step(step(101 + n * 20 + k))
+    assert [t["words"] for t in transcript.snapshot()] == [["w2"], ["w3"], ["w4"]]
+
+
+def test_turn_state_names_who_holds_the_floor():
+    assert turn_state(step(0)) == "none"
+    assert turn_state(step(0, agent_speaking=True)) == "agent"
+    assert turn_state(step(0, user_vad_state=VadState.STARTING)) == "user"
+    assert turn_state(step(0, user_vad_state=VadState.SPEAKING, agent_speaking=True)) == "overlap"
+
+
+# ---- latency, run state, frames -------------------------------------------------------------------------------
+def metrics(n: int, frame_index: int, t0: int = 1_000_000_000) -> Metrics:
+    ms = 1_000_000
+    stamps = {"io": t0 + 1 * ms, "dialogue.in": t0 + 2 * ms, "dialogue": t0 + 12 * ms, "gesture.in": t0 + 13 * ms,
+              "gesture": t0 + 23 * ms, "render.in": t0 + 24 * ms, "render": t0 + 54 * ms}
+    return Metrics(step=n, t_origin_ns=t0, stamps=stamps, values={"frame_index": float(frame_index)})
+
+
+def test_latency_of_a_step_is_split_per_stage_on_its_last_frame():
+    meter = LatencyMeter(PIPELINE, history_steps=2)
+    assert meter.on_metrics(metrics(0, frame_index=0), {}) == []
+    (event,) = meter.on_metrics(metrics(0, frame_index=1), {})
+    assert event == {"type": "latency", "step": 0, "e2e_ms": 54.0,
+                     "stages": {"io": 1.0, "dialogue": 11.0, "gesture": 11.0, "render": 31.0}}
+    (shifted,) = meter.on_metrics(metrics(1, frame_index=1), {"render": 4_000_000})  # render's clock runs 4 ms ahead
+    assert (shifted["e2e_ms"], shifted["stages"]["render"]) == (50.0, 27.0)
+    meter.on_metrics(metrics(2, frame_index=1), {})
+    assert [e["step"] for e in meter.snapshot()] == [1, 2]
+
+
+def test_run_phase_follows_the_stages_and_the_supervisor():
+    state = RunState(PIPELINE, "render", wait_for_start=True)
+    beat = lambda source, s: Control(source=source, command=Command.HEARTBEAT,  # noqa: E731
+                                     detail={"state": s, "counters": {"dropped": 2}})
+    assert state.phase == "starting"
+    events = [e for s in PIPELINE for e in state.on_control(beat(s, "ready"))]
+    assert [e["phase"] for e in events] == ["ready"]
+    assert state.on_control(Control(source="supervisor", command=Command.START))[0]["phase"] == "running"
+    assert state.counters_event({})["stages"]["io"] == {"dropped": 2}
+    assert state.on_control(Control(source="render", command=Command.EOS, detail={"handled": 9}))[0]["phase"] == \
+        "ended"
+
+
+def test_raw_frames_are_encoded_to_jpeg_and_jpeg_frames_pass_through():
+    rgb = np.zeros((32, 48, 3), np.uint8)
+    rgb[:, :24] = (200, 40, 40)
+    frame = RenderFrame(width=48, height=32, encoding="rgb24", image=rgb)
+    decoded = np.asarray(Image.open(io.BytesIO(frame_jpeg(frame, quality=90))))
+    assert decoded.shape == (32, 48, 3)
+    assert np.abs(decoded.astype(int) - rgb).mean() < 3
+    jpeg = np.frombuffer(frame_jpeg(frame, 90), np.uint8)
+    assert frame_jpeg(RenderFrame(width=48, height=32, encoding="jpeg", image=jpeg), 10) == jpeg.tobytes()
+    with pytest.raises(ValueError, match="unknown encoding 'png'"):
+        frame_jpeg(RenderFrame(width=48, height=32, encoding="png", image=jpeg), 90)
+
+
+def test_binary_header_carries_kind_frame_index_and_step():
+    data = pack_binary(BINARY_FRAME, 70000, 1, b"jpeg")
+    assert BINARY_HEADER.size == 8
+    assert struct.unpack("<BxHI", data[:8]) == (BINARY_FRAME, 1, 70000) and data[8:] == b"jpeg"
+
+
+def test_config_errors_name_the_option():
+    with pytest.raises(ConfigError, match=r"dashboard.port: must be in \[0, 65535\], got 70000"):
+        build_dataclass(DashboardConfig, {"port": 70000}, "dashboard")
+    with pytest.raises(ConfigError, match="dashboard.max_turns: must be >= 1"):
+        build_dataclass(DashboardConfig, {"max_turns": 0}, "dashboard")
+    assert DashboardConfig().loopback_only and DashboardConfig(host="localhost").loopback_only
+    assert not DashboardConfig(host="0.0.0.0").loopback_only
+
+
+# ---- server ---------------------------------------------------------------------------------------------------
+def test_server_pushes_snapshot_events_and_frames_and_takes_commands():
+    commands = []
+
+    async def scenario():
+        hub = Hub(lambda: [{"type": "hello", "pipeline": list(PIPELINE)}], commands.append)
+        runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
+        try:
+            async with aiohttp.ClientSession() as http:
+                async with http.get(f"http://127.0.0.1:{port}/") as page:
+                    assert page.status == 200 and "dashboard.js" in await page.text()
+                async with http.get(f"http://127.0.0.1:{port}/static/dashboard.js") as script:
+                    assert script.status == 200
+                async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
+                    assert json.loads((await ws.receive()).data)["type"] == "hello"
+                    hub.broadcast({"type": "vad", "prob": 0.5})
+                    hub.broadcast_frame(pack_binary(BINARY_FRAME, 3, 0, b"\xff\xd8"))
+                    assert json.loads((await ws.receive()).data) == {"type": "vad", "prob": 0.5}
+                    assert (await ws.receive()).data == pack_binary(BINARY_FRAME, 3, 0, b"\xff\xd8")
+                    await ws.send_str(json.dumps({"type": "control", "command": "stop"}))
+                    await ws.send_str(json.dumps({"type": "control", "command": "rm -rf"}))
+                    await ws.send_str("not json")
+                    await _until(lambda: commands)
+                with pytest.raises(aiohttp.WSServerHandshakeError):  # another web site's page may not connect
+                    await http.ws_connect(f"http://127.0.0.1:{port}/ws", headers={"Origin": "http://evil.test"})
+        finally:
+            await runner.cleanup()
+
+    asyncio.run(scenario())
+    assert commands == ["stop"]
+
+
+def test_a_port_in_use_gives_a_clear_error():
+    async def scenario():
+        with socket.socket() as taken:
+            taken.bind(("127.0.0.1", 0))
+            taken.listen()
+            port = taken.getsockname()[1]
+            with pytest.raises(OSError, match=f"dashboard: cannot listen on 127.0.0.1:{port}.*dashboard.port"):
+                await start_server(make_app(Hub(list, print)), "127.0.0.1", port)
+
+    asyncio.run(scenario())
+
+
+async def _until(condition, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.02)
+
+
+# ---- a real run ------------------------------------------------------------------------------------------------
+def test_a_dashboard_that_cannot_start_ends_the_run_with_its_reason(tmp_path):
+    wav = tmp_path / "talk.wav"
+    sf.write(wav, np.zeros(16000 * 20, np.float32), 16000)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = launch(["--replay", str(wav), "--set", f"dashboard.port={port}"], tmp_path / "run")
+        code, output = finish(proc, timeout_s=90)
+    assert code == 1, output
+    assert "the dashboard died (exit code 3)" in output and f"cannot listen on 127.0.0.1:{port}" in output
+    assert leftovers(proc.pid) == []
+
+
+PAGE_STATE = """(() => {
+  const video = document.getElementById('video');
+  const [r, g, b, a] = video.getContext('2d').getImageData(video.width >> 1, video.height >> 1, 1, 1).data;
+  const chart = document.getElementById('chart');
+  const px = chart.getContext('2d').getImageData(0, 0, chart.width, chart.height).data;
+  let coloured = 0;
+  for (let i = 0; i < px.length; i += 4) if (px[i + 3] > 0 && (px[i] !== px[i + 1] || px[i + 1] !== px[i + 2])) coloured++;
+  return {...window.dashboard, pixel: [r, g, b, a], chartColoured: coloured,
+          transcript: document.getElementById('turns').innerText,
+          counters: document.getElementById('counters').innerText,
+          phaseText: document.getElementById('phase').textContent};
+})()"""
+
+
+@pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`; "
+                                                    "`make setup` installs it where it can)")
+def test_a_live_run_shows_in_headless_chromium(tmp_path):
+    """Start and Stop from the page; a rendered frame, the agent's words and a moving latency chart in between."""
+    wav = tmp_path / "talk.wav"
+    t = np.arange(16000 * 30) / 16000
+    sf.write(wav, (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), 16000)
+    report = tmp_path / "run"
+    proc = launch(["--replay", str(wav), "--set", "dashboard.port=0", "--set", "dashboard.wait_for_start=true"],
+                  report)
+    try:
+        url = _wait_for_file(report / "dashboard.url", proc).strip()
+        state, later, stopped_s = asyncio.run(_watch_page(url, proc))
+        code, output = finish(proc, timeout_s=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, output
+    assert stopped_s < 10, "Stop ended the run"  # the recording lasts 30 s
+    assert leftovers(proc.pid) == []
+    # A rendered frame: the test renderer paints frame of step n in grey level n % 256.
+    r, g, b, a = state["pixel"]
+    assert state["frames"] > 0 and a == 255
+    assert abs(r - state["lastFrameStep"] % 256) <= 4 and abs(r - g) <= 2 and abs(g - b) <= 2
+    # The agent's words (the echo dialogue says "w<step>" at every step), from the first step: the page was
+    # connected before Start.
+    assert state["words"] > 0 and "agent" in state["transcript"] and "w0 w1 w2 w3" in state["transcript"]
+    # The latency chart moves.
+    assert later["chartLastStep"] > state["chartLastStep"] >= 0
+    assert later["chartDraws"] > state["chartDraws"] and later["chartColoured"] > 100
+    assert later["latencySamples"] > state["latencySamples"]
+    assert "render" in later["counters"] and "dashboard" in later["counters"]
+
+
+async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, float]:
+    async with HeadlessChromium(url, 1280, 1000) as page:
+        await page.wait_for("window.dashboard && window.dashboard.phase === 'ready'", timeout_s=90)
+        assert await page.evaluate("document.getElementById('start').disabled") is False
+        await page.evaluate("document.getElementById('start').click()")
+        await page.wait_for("window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2", timeout_s=30)
+        state = await page.evaluate(PAGE_STATE)
+        await page.wait_for(f"window.dashboard.chartLastStep > {state['chartLastStep'] + 3}", timeout_s=20)
+        later = await page.evaluate(PAGE_STATE)
+        await page.evaluate("document.getElementById('stop').click()")
+        t0 = time.monotonic()
+        while proc.poll() is None and time.monotonic() - t0 < 20:
+            await asyncio.sleep(0.05)
+        return state, later, time.monotonic() - t0
+
+
+def _wait_for_file(path: Path, proc: subprocess.Popen, timeout_s: float = 60) -> str:
+    deadline = time.monotonic() + timeout_s
+    while not path.exists() or not path.read_text().strip():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise AssertionError(f"no {path.name}: {finish(proc)[1] if proc.poll() is not None else 'timeout'}")
+        time.sleep(0.05)
+    return path.read_text()
