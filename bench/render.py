@@ -107,8 +107,8 @@ def _run_worker(args: list[str]) -> dict:
     done = subprocess.run([sys.executable, "-m", "bench.render", *args], capture_output=True, text=True,
                           env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
     if done.returncode != 0:
-        lines = (done.stderr or done.stdout).strip().splitlines()
-        return {"error": lines[-1] if lines else f"exit code {done.returncode}"}
+        lines = [line for line in (done.stderr or done.stdout).splitlines() if "Error" in line or "error" in line]
+        return {"error": lines[-1].strip() if lines else f"exit code {done.returncode}"}
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 

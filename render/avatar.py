@@ -11,17 +11,19 @@ look); hands with a palm and three phalanges per finger, each on its own finger 
 The face is driven by the 100 expression coefficients psi through a linear map onto six semantic
 blendshapes (vertex offsets in metres at activation 1):
 
-| shape | what moves | from psi (EXPRESSION_MAP) |
+| shape | what moves at activation 1 | activation from psi (EXPRESSION_MAP) |
 |---|---|---|
-| smile | mouth corners up, out and back, cheeks follow | +1.0 psi_0 ... see EXPRESSION_MAP rows |
-| brow_raise | both brows and the forehead up (negative: frown) | |
-| blink | both eyes close (eye ovals flatten to a line) | |
-| mouth_wide | corners outward (an "ee" shape) | |
-| pucker | corners inward, lips forward (an "oo" shape) | |
-| lips_apart | lower lip down, upper lip up (opens without the jaw) | |
+| smile | mouth corners 6.5 mm up, 3 mm out and back; cheeks follow | 0.9 psi_0 + 0.6 psi_2 |
+| brow_raise | brows 6 mm up, forehead 3 mm (negative: frown) | 1.2 psi_2 + 0.8 psi_6 |
+| blink | eyes flatten to a line (negative: wider open) | -0.118 psi_76 + 0.101 psi_73 + 0.099 psi_19 - 0.096 psi_81 + 0.095 psi_22 + 0.091 psi_35 |
+| mouth_wide | corners 7 mm outward (an "ee") | 0.5 psi_7 - 0.4 psi_9 |
+| pucker | corners 6 mm inward, lips 6 mm forward (an "oo") | 0.6 psi_8 - 0.4 psi_10 |
+| lips_apart | lower lip 8 mm down, upper lip 3 mm up (opens without the jaw) | -1.2 psi_1 + 0.9 psi_5 |
 
-The blink row is measured, not guessed: it is the spike-triggered average of psi over the blinks of the BEAT2
-clip 2_scott_0_1_1 (frames where psi_15/19/21/22/25 spike together), normalised so that a blink gives 1.
+The jaw (joint 22) opens the mouth by rotation: the lower face is skinned to it.
+The blink row is measured, not guessed: it is the spike-triggered average of psi over the 7 short events of the
+BEAT2 clip 2_scott_0_1_1 where psi_15/19/21/22/25 spike together (taken to be blinks), keeping its 6 largest
+entries, normalised so that these events give about 1 (0.74-1.29; the clip's median is -0.25: eyes a bit wider).
 FLAME's expression basis is not available here, so the other rows are hand-assigned to low-order components
 with small weights; they make the face move with speech but are not calibrated semantics.
 Activation a_s = sum_i EXPRESSION_MAP[s, i] psi_i, so the avatar's SMPL-X expression directions are

@@ -243,9 +243,26 @@ class MeshRenderer:
         self._msaa_applied = True
 
     def close(self) -> None:
-        if self._gl is not None:
+        if self._gl is None:
+            return
+        if self.platform == "egl":
+            self._close_egl()
+        else:
             self._gl.delete()
-            self._gl = None
+        self._gl = None
+
+    def _close_egl(self) -> None:
+        """Free our GL objects and EGL context only: pyrender's delete() calls eglTerminate on the process-wide
+        display, which breaks every other renderer alive in the process."""
+        from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+
+        platform = self._gl._platform
+        platform.make_current()
+        self._gl._renderer.delete()
+        eglMakeCurrent(platform._egl_display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+        eglDestroyContext(platform._egl_display, platform._egl_context)
+        platform._egl_context = None
+        platform._egl_display = None  # so OffscreenRenderer.__del__ cannot eglTerminate the shared display
 
 
 def _program_cache(pyrender):
