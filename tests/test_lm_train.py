@@ -84,7 +84,7 @@ def _dataset(tmp_path, steps=60, n=3, spec=TINY_SPEC):
 
 
 def _tiny_file_config(**train):
-    base = dict(batch_size=4, window_steps=24, epochs=4, steps_per_epoch=8, warmup_epochs=1, cond_drop_end_epoch=2,
+    base = dict(batch_size=4, window_steps=24, epochs=4, steps_per_epoch=5, warmup_epochs=1, cond_drop_end_epoch=2,
                 pad_start_epoch=2, pad_full_epoch=3, tau_epochs=1, lr=3e-3, checkpoint_every_epochs=2)
     return LMFileConfig(lm=tiny_lm_config(), condition=ConditionSpecConfig(**TINY_SPEC.to_dict()),
                         train=LMTrainConfig(**{**base, **train}))
