@@ -4,6 +4,10 @@
 This module is stateless: `forward` is the teacher-forced full-sequence pass used in training and as the
 reference of the streaming step path (`gesture.lm.stepper.LMStepper`). Attribute names equal the reference
 checkpoint keys (`state_dict_keys/glm_vfl*.tsv`), so a converter is a pure key mapping.
+
+Choices where the facts leave room: the depth inputs `depformer_in[k]` read the temporal output after `out_norm`
+(the normalised state the temporal classifier reads); the VA head reads it before `out_norm` (the head starts with
+its own LayerNorm); a decoder layer runs self-attention, then the cross-attention block, then the gated FFN.
 """
 
 from __future__ import annotations
