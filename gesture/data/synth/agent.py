@@ -1,0 +1,227 @@
+"""The synthetic agent's whole-body motion for one conversation, at 25 fps.
+
+Composition (all local rotations are offsets applied on top of the BEAT2-calibrated rest posture):
+posture (stance, weight shifts, sway, breathing) -> torso FK -> arm IK to the planned wrist targets
+(gestures.py) with palm twist and wrist flexion -> leg IK to the planted feet -> fingers (hands.py) ->
+head (speaking nods on stressed words, per-sentence tilts/turns, listening nods at the user's pauses)
+-> face (jaw from the agent's speech envelope, blinks, brows, smiles, mouth shapes; face.py).
+The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.ndimage import gaussian_filter1d
+
+from gesture.data.synth.calibration import load_calibration
+from gesture.data.synth.config import SynthConfig
+from gesture.data.synth.conversation import AGENT, USER, MIN_PAUSE_S, Conversation, activity_frames
+from gesture.data.synth.face import JAW_OPEN_RAD, blink_track, expressions_from_activations
+from gesture.data.synth.gestures import ArmTracks, plan_arms
+from gesture.data.synth.hands import blend_hands
+from gesture.data.synth.ik import TwoBoneChain
+from gesture.data.synth.posture import Posture, plan_posture
+from gesture.data.synth.tracks import KeyTrack, add_bump, smooth_noise
+from gesture.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
+from gesture.skeleton import NUM_JOINTS, Skeleton, forward_kinematics
+
+LISTENING_ENERGY = 0.55  # relative liveliness while listening (1 while speaking)
+NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
+SIDE_JOINTS = {  # (collar, shoulder, elbow, wrist, hip, knee, ankle, foot) per side
+    "left": (13, 16, 18, 20, 1, 4, 7, 10),
+    "right": (14, 17, 19, 21, 2, 5, 8, 11),
+}
+
+
+@dataclass(frozen=True)
+class AgentMotion:
+    poses: np.ndarray  # (T, 55, 3) float32 axis-angle
+    trans: np.ndarray  # (T, 3) float32
+    expressions: np.ndarray  # (T, 100) float32
+    vad: np.ndarray  # (T,) uint8 agent voice activity
+    user_vad: np.ndarray  # (T,) uint8
+    planted: np.ndarray  # (T, 2) planned foot contacts (left, right)
+
+
+def speech_envelope(pcm: np.ndarray, sample_rate_hz: int, n_frames: int, fps: float) -> np.ndarray:
+    """(T,) RMS per motion frame normalised by its 95th percentile over voiced frames, in [0, 1]."""
+    hop = int(round(sample_rate_hz / fps))
+    padded = np.zeros(n_frames * hop, np.float64)
+    padded[: min(len(pcm), len(padded))] = pcm[: len(padded)]
+    rms = np.sqrt((padded.reshape(n_frames, hop) ** 2).mean(1))
+    voiced = rms[rms > 1e-3]
+    scale = np.percentile(voiced, 95) if len(voiced) else 1.0
+    return np.clip(gaussian_filter1d(rms / scale, 0.7), 0.0, 1.0)
+
+
+def speaking_frames(conv: Conversation, n_frames: int, fps: float) -> np.ndarray:
+    """(T,) 1 inside the agent's turns (not its backchannels)."""
+    out = np.zeros(n_frames)
+    for turn in conv.turns_of(AGENT, "turn"):
+        out[int(turn.start_s * fps): int(turn.end_s * fps) + 1] = 1.0
+    return out
+
+
+def user_pauses(conv: Conversation) -> list[float]:
+    """Times where the user pauses: after a word followed by a gap >= MIN_PAUSE_S, and at turn ends."""
+    words = conv.words_of(USER)
+    return [a.end_s for a, b in zip(words, words[1:]) if b.start_s - a.end_s >= MIN_PAUSE_S] + (
+        [words[-1].end_s] if words else [])
+
+
+def plan_head(rng: np.random.Generator, conv: Conversation, n: int, fps: float, energy: np.ndarray,
+              env: np.ndarray, speaking: np.ndarray) -> tuple[np.ndarray, list[float]]:
+    """(T, 3) head offset (pitch down +x, yaw +y, roll +z) and the times of listening nods."""
+    times = np.arange(n) / fps
+    pose = KeyTrack(np.zeros(3))
+    for turn in conv.turns:
+        if turn.kind != "turn":
+            continue
+        for a, _ in turn.sentence_spans_s if turn.speaker == AGENT else [(turn.start_s, None)]:
+            pose.hold(a - 0.3)
+            target = (rng.uniform(-0.04, 0.04), rng.uniform(-0.12, 0.12), rng.uniform(-0.07, 0.07))
+            if turn.speaker == USER:  # attentive: slightly down, tilted
+                target = (rng.uniform(0.0, 0.06), rng.uniform(-0.05, 0.05), rng.uniform(-0.1, 0.1))
+            pose.key(a + rng.uniform(0.2, 0.6), target)
+    head = pose.evaluate(times)
+    for w in conv.words_of(AGENT):
+        if w.stressed and rng.random() < 0.3:
+            add_bump(head[:, 0], fps, w.peak_s, 0.12, 0.0, 0.22, rng.uniform(0.035, 0.08))
+    nods = []
+    pauses = user_pauses(conv) + [t.start_s for t in conv.turns_of(AGENT, "backchannel")]
+    for t in sorted(pauses):
+        idx = min(int(t * fps), n - 1)
+        if speaking[idx] > 0 or rng.random() > 0.6:
+            continue
+        start, period = t + rng.uniform(0.05, 0.3), rng.uniform(0.38, 0.5)
+        amp = rng.uniform(0.06, 0.14)
+        for k in range(int(rng.integers(1, 4))):
+            add_bump(head[:, 0], fps, start + k * period, period * 0.4, 0.0, period * 0.6, amp * 0.7**k)
+        nods.append(start)
+    head += 0.025 * smooth_noise(rng, n, fps, 0.5, 3) * energy[:, None]
+    head[:, 0] -= 0.03 * env
+    return head, nods
+
+
+def plan_face(rng: np.random.Generator, conv: Conversation, n: int, fps: float, env: np.ndarray,
+              nods: list[float]) -> np.ndarray:
+    """(T, 100) expression coefficients."""
+    smile = np.full(n, rng.uniform(0.05, 0.2))
+    brow, wide, pucker = np.zeros(n), np.zeros(n), np.zeros(n)
+    for t in nods:
+        if rng.random() < 0.5:
+            add_bump(smile, fps, t + 0.2, 0.3, rng.uniform(0.5, 1.8), 0.6, rng.uniform(0.3, 0.7))
+    for w in conv.words_of(AGENT):
+        add_bump(wide, fps, w.peak_s, 0.06, 0.0, max(w.end_s - w.peak_s, 0.06), rng.uniform(-0.2, 0.5))
+        add_bump(pucker, fps, w.peak_s, 0.06, 0.0, max(w.end_s - w.peak_s, 0.06), rng.uniform(-0.2, 0.4))
+        if w.stressed and rng.random() < 0.2:
+            add_bump(brow, fps, w.peak_s, 0.12, 0.15, 0.35, rng.uniform(0.3, 0.7))
+        if w.word.endswith("?"):
+            add_bump(brow, fps, w.start_s, 0.15, 0.3, 0.4, rng.uniform(0.4, 0.8))
+    for turn in conv.turns_of(AGENT, "turn"):
+        for _, b in turn.sentence_spans_s:
+            if rng.random() < 0.25:
+                add_bump(smile, fps, b, 0.3, rng.uniform(0.3, 1.0), 0.6, rng.uniform(0.2, 0.5))
+    for t in user_pauses(conv):
+        if rng.random() < 0.15:
+            add_bump(brow, fps, t + 0.1, 0.15, 0.2, 0.4, rng.uniform(0.2, 0.5))
+    extra_blinks = [t.start_s for t in conv.turns_of(AGENT, "turn") if rng.random() < 0.5]
+    return expressions_from_activations({
+        "smile": np.clip(smile, 0.0, 1.0), "brow_raise": np.clip(brow, 0.0, 1.0), "lips_apart": 0.35 * env,
+        "mouth_wide": wide * env, "pucker": pucker * env, "blink": blink_track(rng, n, fps, extra_blinks),
+    })
+
+
+def _aa(v) -> np.ndarray:
+    return axis_angle_to_matrix(np.asarray(v, np.float64))
+
+
+class BodySolver:
+    """Turns posture, arm tracks and head offsets into local joint rotations (T, 55, 3, 3)."""
+
+    def __init__(self, skeleton: Skeleton):
+        self.skeleton = skeleton
+        self.base = load_calibration().base_local_aa
+        rest = skeleton.rest_joints.astype(np.float64)
+        self.arm_chains, self.leg_chains = {}, {}
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            _, sh, el, wr, hip, kn, an, _ = SIDE_JOINTS[side]
+            self.arm_chains[side] = TwoBoneChain(rest[el] - rest[sh], rest[wr] - rest[el], np.array([0.0, -sign, 0.0]))
+            self.leg_chains[side] = TwoBoneChain(rest[kn] - rest[hip], rest[an] - rest[kn], np.array([1.0, 0.0, 0.0]),
+                                                 min_flex_rad=0.05, max_flex_rad=1.2)
+
+    def _fk(self, local: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        joints, transforms = forward_kinematics(self.skeleton, torch.from_numpy(local), torch.from_numpy(trans))
+        return joints.numpy(), transforms[..., :3, :3].numpy()
+
+    def solve(self, posture: Posture, arms: ArmTracks, head: np.ndarray, rest_wrist_y: float) -> np.ndarray:
+        n = len(head)
+        local = np.broadcast_to(np.eye(3), (n, NUM_JOINTS, 3, 3)).copy()
+        local[:, 0] = _aa(posture.root_offset_aa) @ _aa(self.base[0])
+        for k, j in enumerate((3, 6, 9)):
+            local[:, j] = _aa(posture.spine_offset_aa[:, k]) @ _aa(self.base[j])
+        local[:, 12] = _aa(NECK_SHARE * head) @ _aa(self.base[12])
+        local[:, 15] = _aa((1 - NECK_SHARE) * head) @ _aa(self.base[15])
+        raise_amount = np.clip((arms.wrist[..., 1] - rest_wrist_y) / 0.4, 0.0, 1.0)  # (T, 2)
+        for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
+            lift = posture.collar_lift + 0.1 * raise_amount[:, s]
+            local[:, SIDE_JOINTS[side][0]] = _aa(np.stack([0 * lift, 0 * lift, sign * lift], -1)) @ _aa(self.base[SIDE_JOINTS[side][0]])
+        joints, rots = self._fk(local, posture.trans)
+        for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
+            self._solve_arm(local, joints, rots, arms, s, side, sign)
+            self._solve_leg(local, joints, rots, posture, s, side, sign)
+        return local
+
+    def _solve_arm(self, local, joints, rots, arms: ArmTracks, s: int, side: str, sign: float) -> None:
+        collar, sh, el, wr = SIDE_JOINTS[side][:4]
+        chest_rot, chest_pos = rots[:, 9], joints[:, 9]
+        target = chest_pos + np.einsum("tij,tj->ti", chest_rot, arms.wrist[:, s])
+        pole_local = np.stack([sign * (0.35 + arms.elbow_out[:, s]), -np.ones(len(target)), -0.3 * np.ones(len(target))], -1)
+        pole = np.einsum("tij,tj->ti", chest_rot, pole_local)
+        chain = self.arm_chains[side]
+        local[:, sh], theta = chain.solve(joints[:, sh], rots[:, collar], target, pole)
+        forearm = chain.bone_c / np.linalg.norm(chain.bone_c)
+        twist = -sign * arms.supination[:, s, None] * forearm  # (T, 3): supination turns the palm up
+        local[:, el] = _aa(theta[:, None] * chain.hinge_axis) @ _aa(0.5 * twist)
+        flex = np.zeros((len(target), 3))
+        flex[:, 2] = -sign * arms.flex[:, s]
+        local[:, wr] = _aa(0.5 * twist) @ _aa(flex)
+
+    def _solve_leg(self, local, joints, rots, posture: Posture, s: int, side: str, sign: float) -> None:
+        hip, knee, ankle = SIDE_JOINTS[side][4:7]
+        pelvis_rot = rots[:, 0]
+        pole = np.einsum("tij,j->ti", pelvis_rot, np.array([sign * 0.15, 0.0, 1.0]))
+        chain = self.leg_chains[side]
+        local[:, hip], theta = chain.solve(joints[:, hip], pelvis_rot, posture.ankles[:, s], pole)
+        local[:, knee] = _aa(theta[:, None] * chain.hinge_axis)
+        shin = pelvis_rot @ local[:, hip] @ local[:, knee]  # (T, 3, 3) knee world rotation
+        foot = rotation_about_y(np.full(len(theta), posture.foot_yaw[s]))
+        local[:, ankle] = np.swapaxes(shin, -1, -2) @ foot
+
+
+def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Conversation,
+                            skeleton: Skeleton | None = None) -> AgentMotion:
+    skeleton = skeleton or Skeleton.default()
+    fps = cfg.motion_fps
+    n = int(round(conv.duration_s * fps))
+    speaking = speaking_frames(conv, n, fps)
+    energy = LISTENING_ENERGY + (1 - LISTENING_ENERGY) * gaussian_filter1d(speaking, 8)
+    env = speech_envelope(conv.channels[AGENT], conv.sample_rate_hz, n, fps)
+    posture = plan_posture(rng, n, fps, energy, skeleton)
+    arms = plan_arms(cfg, rng, conv, n, fps, energy)
+    head, nods = plan_head(rng, conv, n, fps, energy, env, speaking)
+    expressions = plan_face(rng, conv, n, fps, env, nods)
+    solver = BodySolver(skeleton)
+    local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
+    poses = matrix_to_axis_angle(local)  # (T, 55, 3)
+    poses[:, 22] = solver.base[22] + np.stack([JAW_OPEN_RAD * env, 0 * env, 0 * env], -1)
+    poses[:, 23:25] = 0.0
+    poses[:, 25:55] = blend_hands(arms.hand)
+    return AgentMotion(
+        poses=poses.astype(np.float32), trans=posture.trans.astype(np.float32), expressions=expressions,
+        vad=activity_frames(conv.words_of(AGENT), n, fps), user_vad=activity_frames(conv.words_of(USER), n, fps),
+        planted=posture.planted.astype(np.uint8),
+    )

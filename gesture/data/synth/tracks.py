@@ -1,0 +1,82 @@
+"""Smooth time tracks: keyframes joined by minimum-jerk segments, and band-limited noise.
+
+A minimum-jerk segment has zero velocity and acceleration at both keys, so every key is a speed minimum:
+a beat's stroke key lands exactly where the hand stops.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+MIN_KEY_SPACING_S = 0.04
+
+
+def minimum_jerk(s: np.ndarray) -> np.ndarray:
+    """0 -> 1 with zero first and second derivatives at both ends; s in [0, 1]."""
+    s = np.clip(s, 0.0, 1.0)
+    return s**3 * (10 - 15 * s + 6 * s**2)
+
+
+class KeyTrack:
+    """A (T, D) signal given by keys (time, value); before the first key it holds the initial value."""
+
+    def __init__(self, initial):
+        initial = np.atleast_1d(np.asarray(initial, np.float64))
+        self.times: list[float] = [-1e9]
+        self.values: list[np.ndarray] = [initial]
+
+    @property
+    def last_time(self) -> float:
+        return self.times[-1]
+
+    @property
+    def last_value(self) -> np.ndarray:
+        return self.values[-1]
+
+    def key(self, t: float, value) -> None:
+        """Add a key; a key earlier than the last one (plus a minimum spacing) is moved after it."""
+        t = max(float(t), self.times[-1] + MIN_KEY_SPACING_S)
+        self.times.append(t)
+        self.values.append(np.atleast_1d(np.asarray(value, np.float64)).copy())
+
+    def hold(self, t: float) -> None:
+        """Stay at the last value until ``t``."""
+        if t > self.times[-1]:
+            self.key(t, self.values[-1])
+
+    def evaluate(self, times: np.ndarray) -> np.ndarray:
+        """(T,) seconds -> (T, D)."""
+        key_t = np.asarray(self.times)
+        values = np.stack(self.values)  # (K, D)
+        i = np.clip(np.searchsorted(key_t, times, side="right") - 1, 0, len(key_t) - 1)  # segment start
+        j = np.minimum(i + 1, len(key_t) - 1)
+        span = np.maximum(key_t[j] - key_t[i], 1e-9)
+        w = np.where(j > i, minimum_jerk((times - key_t[i]) / span), 0.0)[:, None]  # (T, 1)
+        return values[i] + (values[j] - values[i]) * w
+
+
+def smooth_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1) -> np.ndarray:
+    """(n_frames, dim) Gaussian-filtered white noise with unit standard deviation per column."""
+    sigma = fps / (2 * np.pi * cutoff_hz)
+    pad = int(4 * sigma) + 1
+    x = gaussian_filter1d(rng.standard_normal((n_frames + 2 * pad, dim)), sigma, axis=0, mode="wrap")[pad:-pad]
+    return x / np.maximum(x.std(0, keepdims=True), 1e-9)
+
+
+def bump(times: np.ndarray, centre_s: float, rise_s: float, hold_s: float, fall_s: float) -> np.ndarray:
+    """(T,) 0 -> 1 -> 0: minimum-jerk rise ending at ``centre_s``, hold, then a minimum-jerk fall."""
+    up = minimum_jerk((times - (centre_s - rise_s)) / max(rise_s, 1e-6))
+    down = 1.0 - minimum_jerk((times - (centre_s + hold_s)) / max(fall_s, 1e-6))
+    return np.minimum(up, down)
+
+
+def add_bump(out: np.ndarray, fps: float, centre_s: float, rise_s: float, hold_s: float, fall_s: float, amount) -> None:
+    """out (T,) or (T, D) += amount * bump(...), touching only the frames the bump covers."""
+    first = max(0, int((centre_s - rise_s) * fps))
+    last = min(len(out), int((centre_s + hold_s + fall_s) * fps) + 2)
+    if first >= last:
+        return
+    times = np.arange(first, last) / fps
+    shape = bump(times, centre_s, rise_s, hold_s, fall_s)
+    out[first:last] += shape[:, None] * np.asarray(amount) if out.ndim == 2 else shape * amount
