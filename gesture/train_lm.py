@@ -5,7 +5,9 @@ MIBURI-FACTS section 3 (weighted CE, InfoNCE on Gumbel-softmax latents, voice-ac
 dropout, pad input dropout, tau annealing) with epoch thresholds from the config. `--codecs DIR` takes the three
 trained codecs whose codebooks initialise the gesture tables and define the InfoNCE latents; without it the
 model's own random tables stand in (a smoke-test setting). Checkpoints (safetensors + sizes + condition spec) and
-`loss_curve.png` go to --out; running again with the same --out resumes.
+`loss_curve.png` go to --out; running again with the same --out resumes. Under `torchrun` (WORLD_SIZE > 1) it trains
+with DistributedDataParallel, one process per GPU (gloo on CPU), each rank drawing its own batches; rank 0 writes
+the checkpoints. On a GPU the forward runs under bf16 autocast.
 """
 
 from __future__ import annotations
@@ -35,12 +37,19 @@ def level_groups(sizes: LMConfig) -> list[slice]:
 
 
 def training_losses(model: GestureLM, batch: LMBatch, epoch: float, cfg: LMTrainConfig,
-                    generator: torch.Generator) -> dict[str, torch.Tensor]:
-    """All loss terms of one batch at (fractional) `epoch`, with the schedules applied."""
+                    generator: torch.Generator, forward=None) -> dict[str, torch.Tensor]:
+    """All loss terms of one batch at (fractional) `epoch`, with the schedules applied. `forward` is the model or
+    its DistributedDataParallel wrapper."""
     sizes = model.sizes
     text, audio = drop_conditions(batch.text, batch.audio, condition_drop_probability(epoch, cfg), generator)
     inputs = pad_inputs(batch.tokens, sizes, pad_input_rate(epoch, cfg), generator)
-    out = model(inputs, text, audio, batch.speaker)
+    device = next(model.parameters()).device
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=device.type == "cuda"):
+        out = (forward or model)(inputs.to(device), text.to(device), audio.to(device), batch.speaker.to(device))
+    out.logits = out.logits.float()
+    out.va_logit = None if out.va_logit is None else out.va_logit.float()
+    batch = LMBatch(*(t.to(device) for t in (batch.tokens, batch.text, batch.audio, batch.vad, batch.speaker,
+                                             batch.va_weight)))
     weights = level_weights(sizes.n_levels, sizes.face_levels, cfg.face_ce_weight)
     losses = {"ce": token_ce(out.logits, batch.tokens, weights, sizes.pad_token)}
     codebooks = [model.codebook_vectors(k) for k in range(sizes.n_levels)]
@@ -80,13 +89,19 @@ def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Opt
     cfg = file_cfg.train
     spec = ConditionSpec(**vars(file_cfg.condition))
     epochs = cfg.epochs if epochs is None else epochs
+    rank, world, device = _distributed()
     torch.manual_seed(cfg.seed)
-    generator = torch.Generator().manual_seed(cfg.seed)
+    generator = torch.Generator().manual_seed(cfg.seed + rank)
     dataset = LMDataset(data_dir, file_cfg.lm.n_levels, spec)
     resumed = (out_dir / "lm.json").exists()
     model = load_lm(out_dir, spec).train() if resumed else GestureLM(file_cfg.lm, spec)
     if not resumed:
         _init_codebooks(model, codecs_dir)
+    model.to(device)
+    forward = model
+    if world > 1:
+        forward = torch.nn.parallel.DistributedDataParallel(  # depth key/value copies 1..18 are never used
+            model, device_ids=[device] if device.type == "cuda" else None, find_unused_parameters=True)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, cfg.lr_step_epochs, cfg.lr_gamma)
     history: list[dict] = []
@@ -95,15 +110,17 @@ def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Opt
     if state is not None:
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
-        generator.set_state(state["generator"])
+        if rank == 0:
+            generator.set_state(state["generator"])
         history = state["losses"]
         start_epoch = len(history)
     for epoch in range(start_epoch, epochs):
         sums: dict[str, float] = {}
-        bar = tqdm(range(cfg.steps_per_epoch), desc=f"epoch {epoch + 1}/{epochs}", disable=not progress, leave=False)
+        bar = tqdm(range(cfg.steps_per_epoch), desc=f"epoch {epoch + 1}/{epochs}", disable=not progress or rank > 0,
+                   leave=False)
         for i in bar:
             batch = dataset.sample(cfg.batch_size, cfg.window_steps, generator)
-            losses = training_losses(model, batch, epoch + i / cfg.steps_per_epoch, cfg, generator)
+            losses = training_losses(model, batch, epoch + i / cfg.steps_per_epoch, cfg, generator, forward)
             optimizer.zero_grad(set_to_none=True)
             losses["total"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -113,11 +130,28 @@ def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Opt
             bar.set_postfix(loss=f"{float(losses['total'].detach()):.3f}")
         scheduler.step()
         history.append({"epoch": epoch + 1, **{k: v / cfg.steps_per_epoch for k, v in sums.items()}})
-        if progress:
+        if progress and rank == 0:
             tqdm.write(json.dumps(history[-1]))
-        if (epoch + 1) % cfg.checkpoint_every_epochs == 0 or epoch + 1 == epochs:
+        if rank == 0 and ((epoch + 1) % cfg.checkpoint_every_epochs == 0 or epoch + 1 == epochs):
             _checkpoint(model, optimizer, scheduler, generator, history, out_dir, epoch + 1, cfg)
+    if world > 1:
+        torch.distributed.barrier()
+        torch.distributed.destroy_process_group()
     return history
+
+
+def _distributed() -> tuple[int, int, torch.device]:
+    """(rank, world size, device); starts the process group under torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    cuda = torch.cuda.is_available()
+    device = torch.device(f"cuda:{local_rank}") if cuda else torch.device("cpu")
+    if world > 1 and not torch.distributed.is_initialized():
+        if cuda:
+            torch.cuda.set_device(device)
+        torch.distributed.init_process_group("nccl" if cuda else "gloo")
+    rank = torch.distributed.get_rank() if world > 1 else 0
+    return rank, world, device
 
 
 def _init_codebooks(model: GestureLM, codecs_dir: Optional[Path]) -> None:

@@ -24,7 +24,7 @@ CHECKPOINT_PREFIXES = ("module.", "m.")
 def save_lm(model: GestureLM, directory: Path, **progress: int) -> None:
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().contiguous() for k, v in model.state_dict().items()}
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     save_file(state, str(directory / WEIGHTS_FILE))
     meta = {"lm": dataclasses.asdict(model.sizes), "condition": model.spec.to_dict(), **progress}
     (directory / META_FILE).write_text(json.dumps(meta, indent=2))
