@@ -31,14 +31,15 @@ class VadConfig:
 class EchoConfig:
     """Echo suppression for loudspeakers: the agent's own played voice must not trigger barge-in.
 
-    mode "gate": the mic is compared with the agent's known playback signal; an echo path (delay, gain) is
-    estimated while only the agent talks, the predicted echo is subtracted, and the VAD only counts speech
-    whose residual is `margin_db` louder than the predicted echo. "off": headphones / replayed input.
+    mode "gate": the mic is compared with the agent's known playback signal (dialogue/echo.py): the echo's
+    level relative to the playback is learned from blocks where the mic clearly is the playback, and the VAD
+    only counts speech `margin_db` louder than the loudest echo the playback could cause. Harmless without
+    echo (headphones, replayed input), where it never engages. "off": no gating.
     """
 
     mode: Literal["off", "gate"] = "gate"
     max_delay_s: float = 0.4  # the longest playback -> microphone delay searched
-    margin_db: float = 6.0
+    margin_db: float = 6.0  # how much louder than the loudest possible echo the user must be
 
     def __post_init__(self):
         _require(0 < self.max_delay_s <= 2.0, "echo.max_delay_s", f"must be in (0, 2], got {self.max_delay_s}")

@@ -93,22 +93,31 @@ def test_barge_in_cuts_the_agent_and_the_user_is_answered(tmp_path):
     assert any(t["start_s"] > second_user[0]["end_s"] for t in agent_turns)  # and then answered
 
 
-def converse_with_echo(echo_mode: str, run_dir):
-    """Loudspeaker echo: the mic hears the agent's own output (delayed 0.2 s, gain 0.5) after the question."""
+def room_impulse_response() -> np.ndarray:
+    """Loudspeaker to mic: direct path plus 150 ms of decaying reverberation."""
+    n = int(0.15 * SAMPLE_RATE_HZ)
+    ir = np.random.default_rng(0).standard_normal(n) * np.exp(-np.arange(n) / 720) * 0.05
+    ir[0] = 1.0
+    return ir.astype(np.float32)
+
+
+def converse_with_echo(echo_mode: str, run_dir, user=None, echo_gain=0.5):
+    """Loudspeakers: the mic hears the user plus the agent's own output (0.2 s later, reverberated)."""
     from agent.messages import AudioUser
     from agent.stage import RunContext
     from dialogue.process import create_component
 
     comp = create_component(dialogue_cfg(echo={"mode": echo_mode}), RunContext(run_dir, False, 0, "e"))
-    played = np.zeros(0, np.float32)
-    delay = int(0.2 * SAMPLE_RATE_HZ)
+    user = np.concatenate([load_24k(LIBRIVOX), silence(4.5)]) if user is None else user
+    ir, delay = room_impulse_response(), int(0.2 * SAMPLE_RATE_HZ)
+    user_blocks = blocks(user)
+    echo = np.zeros(len(user_blocks) * STEP_SAMPLES + delay + len(ir) + STEP_SAMPLES, np.float32)
     outs = []
-    for i, block in enumerate(blocks(np.concatenate([load_24k(LIBRIVOX), silence(4.5)]))):
-        echo = played[i * STEP_SAMPLES - delay: (i + 1) * STEP_SAMPLES - delay] if i * STEP_SAMPLES >= delay \
-            else np.zeros(STEP_SAMPLES, np.float32)
-        (out,) = comp.handle(AudioUser(pcm=(block + 0.5 * echo).astype(np.float32), step=i))
+    for i, block in enumerate(user_blocks):
+        (out,) = comp.handle(AudioUser(pcm=block + echo_gain * echo[i * STEP_SAMPLES: (i + 1) * STEP_SAMPLES], step=i))
         outs.append(out)
-        played = np.concatenate([played, out.agent_pcm])
+        start = (i + 1) * STEP_SAMPLES + delay  # played from the next step on, heard `delay` later
+        echo[start: start + STEP_SAMPLES + len(ir) - 1] += np.convolve(out.agent_pcm, ir)
     comp.close()
     return outs
 
@@ -117,6 +126,16 @@ def test_echo_of_the_agents_own_voice_does_not_barge_in(tmp_path):
     gated = converse_with_echo("gate", tmp_path)
     assert sum(s.agent_speaking for s in gated) * STEP_S > 2.0
     assert not any(s.agent_interrupted for s in gated)
+
+
+def test_the_user_can_still_barge_in_over_a_quieter_echo(tmp_path):
+    speech = load_24k(LIBRIVOX)
+    overlap_start = (len(speech) + int(2.3 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
+    user = np.concatenate([speech, silence((overlap_start - len(speech)) / SAMPLE_RATE_HZ),
+                           speech[: int(3.0 * SAMPLE_RATE_HZ)], silence(3.0)])
+    steps = converse_with_echo("gate", tmp_path, user, echo_gain=0.1)
+    cut = [i for i, s in enumerate(steps) if s.agent_interrupted]
+    assert len(cut) == 1 and cut[0] > overlap_start // STEP_SAMPLES
 
 
 @pytest.mark.slow
