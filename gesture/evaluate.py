@@ -1,5 +1,6 @@
 """Evaluate a predicted motion against ground truth:
-``python -m gesture.evaluate --motion pred.npz --gt gt.npz --wav speech.wav --json``.
+``python -m gesture.evaluate --motion pred.npz --gt gt.npz --wav speech.wav --json``;
+the shipped default agent's quality report: ``python -m gesture.evaluate --suite default --json`` (gesture.suite).
 
 Motion files: BEAT2-style npz (poses (T, 165) or (T, 55, 3), trans, expressions; rate from
 ``mocap_frame_rate`` or ``fps``, default 25). The protocol is described in gesture.metrics.
@@ -71,6 +72,11 @@ def _encoders(args) -> list:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--suite" in argv:  # the default agent's quality report (gesture.suite)
+        from gesture.suite import main as suite_main
+
+        return suite_main(argv)
     parser = argparse.ArgumentParser(description="Gesture metrics of a predicted motion against ground truth.")
     parser.add_argument("--motion", required=True, help="predicted motion npz")
     parser.add_argument("--gt", required=True, help="ground-truth motion npz")

@@ -1,0 +1,100 @@
+#!/usr/bin/env bash
+# Reproduce the shipped default agent on CPU: synthetic dyadic sessions (+ the real BEAT2 clip) -> the three region
+# codecs -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and checkpoints/gesture_lm.
+#
+#   bash scripts/train_default.sh                 # the shipped run (about 35 min of wall time on 2 shared cores)
+#   SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
+#
+# Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PY=${PY:-.venv/bin/python}
+WORK=${WORK:-runs/default}
+SHIP=${SHIP:-checkpoints}
+SYNTHETIC=${SYNTHETIC:-data/synthetic}
+SESSIONS=${SESSIONS:-40}
+MINUTES=${MINUTES:-3}
+SEED=${SEED:-0}
+BEAT2_CLIP=${BEAT2_CLIP:-../shared/data/beat2/2_scott_0_1_1}
+CODEC_CONFIG=${CODEC_CONFIG:-configs/codec/default_small.yaml}
+LM_CONFIG=${LM_CONFIG:-configs/lm/default_small.yaml}
+CODEC_STEPS=${CODEC_STEPS:-}
+LM_EPOCHS=${LM_EPOCHS:-}
+NICE=(nice -n "${NICE_LEVEL:-5}")
+export OPENBLAS_NUM_THREADS=1
+
+mkdir -p "$WORK"
+TIMES="$WORK/wall_times.tsv"
+: > "$TIMES"
+
+timed() {  # timed NAME command...: run it and append "NAME<TAB>seconds" to $TIMES
+  local name=$1 start=$SECONDS
+  shift
+  echo "== $name: $*" >&2
+  "$@"
+  printf '%s\t%d\n' "$name" $((SECONDS - start)) >> "$TIMES"
+}
+
+mix_data() {  # one BEAT2-layout directory: the synthetic sessions plus the real clip (train split)
+  local mix="$WORK/data" sub
+  rm -rf "$mix"
+  for sub in smplxflame_25 wave16k whisper_transcription; do
+    mkdir -p "$mix/$sub"
+    if [ -d "$SYNTHETIC/$sub" ]; then
+      ln -s "$(realpath "$SYNTHETIC/$sub")"/* "$mix/$sub/"
+    fi
+  done
+  cp "$SYNTHETIC/train_test_split.csv" "$mix/train_test_split.csv"
+  if [ -f "$BEAT2_CLIP.npz" ]; then
+    ln -s "$(realpath "$BEAT2_CLIP.npz")" "$mix/smplxflame_25/"
+    ln -s "$(realpath "$BEAT2_CLIP.wav")" "$mix/wave16k/"
+    printf '%s,train\n' "$(basename "$BEAT2_CLIP")" >> "$mix/train_test_split.csv"
+  fi
+}
+
+train_codecs() {  # the three regions in parallel, each niced and single-threaded
+  local region pids=()
+  for region in upper lower face; do
+    "${NICE[@]}" "$PY" -m gesture.train_codec --config "$CODEC_CONFIG" --region "$region" --data "$WORK/cache" \
+      --out "$WORK/codecs/$region" ${CODEC_STEPS:+--steps "$CODEC_STEPS"} > "$WORK/codec_$region.json" \
+      2> "$WORK/codec_$region.log" &
+    pids+=($!)
+  done
+  for pid in "${pids[@]}"; do wait "$pid"; done
+}
+
+ship() {  # only what inference needs: codec weights + config, LM weights in bfloat16 + its metadata
+  local region
+  for region in upper lower face; do
+    mkdir -p "$SHIP/codecs/$region"
+    cp "$WORK/codecs/$region/model.safetensors" "$WORK/codecs/$region/config.yaml" \
+      "$WORK/codecs/$region/loss_curve.png" "$SHIP/codecs/$region/"
+  done
+  mkdir -p "$SHIP/gesture_lm"
+  cp "$WORK/lm/lm.json" "$WORK/lm/losses.json" "$WORK/lm/loss_curve.png" "$WORK/lm_data/speakers.json" \
+    "$SHIP/gesture_lm/"
+  "$PY" - "$WORK/lm/lm.safetensors" "$SHIP/gesture_lm/lm.safetensors" <<'EOF'
+import sys
+import torch
+from safetensors.torch import load_file, save_file
+state = load_file(sys.argv[1])
+save_file({k: (v.to(torch.bfloat16) if v.is_floating_point() else v).contiguous() for k, v in state.items()},
+          sys.argv[2])
+EOF
+}
+
+if [ ! -f "$SYNTHETIC/train_test_split.csv" ]; then
+  timed synthetic "$PY" -m gesture.data.synthetic --out "$SYNTHETIC" --sessions "$SESSIONS" --minutes "$MINUTES" \
+    --seed "$SEED"
+fi
+mix_data
+timed chunk_cache "$PY" -m gesture.data.build --root "$WORK/data" --out "$WORK/cache"
+timed codecs train_codecs
+rm -rf "$WORK/lm_data" "$WORK/lm"
+timed tokenize "$PY" -m gesture.data.tokenize --root "$WORK/data" --codecs "$WORK/codecs" --out "$WORK/lm_data"
+timed lm "${NICE[@]}" "$PY" -m gesture.train_lm --config "$LM_CONFIG" --data "$WORK/lm_data" \
+  --codecs "$WORK/codecs" --out "$WORK/lm" --no-progress ${LM_EPOCHS:+--epochs "$LM_EPOCHS"}
+timed ship ship
+du -sh "$SHIP"/* >&2
+cat "$TIMES"
