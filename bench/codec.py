@@ -3,9 +3,9 @@
     python -m bench.codec --json [--steps 300] [--sizes reference small]
 
 For each size, builds the upper, lower and face codecs (random weights: time does not depend on
-them), opens a StreamingDecoder on each and times `step` of all three per 80 ms step. A fixed
-baseline workload (a 256x2048 matmul chain) is timed interleaved in the same run, so a reading
-can be judged against how busy the machine was. `--dtypes bfloat16` runs the codecs in bf16
+them), opens a StreamingDecoder on each and times `step` of all three per 80 ms step. All variants
+(sizes x dtypes) and a fixed baseline workload (256x2048x256 matmuls) step in turn, interleaved,
+so they are compared under the same machine load, and a reading can be judged by the baseline. `--dtypes bfloat16` runs the codecs in bf16
 (half the weight traffic; the step is memory-bound on CPU).
 """
 
@@ -43,28 +43,45 @@ def _baseline_workload(a: torch.Tensor, b: torch.Tensor) -> float:
     return time.perf_counter() - start
 
 
-def bench_size(size: str, steps: int, warmup: int, dtype: torch.dtype) -> dict:
-    config = load_codec_config(CONFIG_DIR / f"{size}.yaml").codec
-    codecs = {region: build_codec(config, region).eval().to(dtype) for region in REGIONS}
-    decoders = {region: StreamingDecoder(codec) for region, codec in codecs.items()}
-    generator = torch.Generator().manual_seed(0)
-    codes = {r: torch.randint(0, config.codebook_size, (steps + warmup, c.n_q, 1), generator=generator)
-             for r, c in codecs.items()}
-    a, b = torch.randn(256, 2048), torch.randn(2048, 256)
-    step_s, baseline_s = [], []
-    for i in range(steps + warmup):
+class _Variant:
+    """The three codecs of one size and dtype, each with an open StreamingDecoder."""
+
+    def __init__(self, size: str, dtype: torch.dtype, total_steps: int) -> None:
+        config = load_codec_config(CONFIG_DIR / f"{size}.yaml").codec
+        self.size, self.dtype = size, dtype
+        self.codecs = {region: build_codec(config, region).eval().to(dtype) for region in REGIONS}
+        self.decoders = {region: StreamingDecoder(codec) for region, codec in self.codecs.items()}
+        generator = torch.Generator().manual_seed(0)
+        self.codes = {r: torch.randint(0, config.codebook_size, (total_steps, c.n_q, 1), generator=generator)
+                      for r, c in self.codecs.items()}
+        self.samples_s: list[float] = []
+
+    def step(self, i: int) -> float:
         start = time.perf_counter()
-        for region, decoder in decoders.items():
-            decoder.step(codes[region][i:i + 1])
-        elapsed = time.perf_counter() - start
+        for region, decoder in self.decoders.items():
+            decoder.step(self.codes[region][i:i + 1])
+        return time.perf_counter() - start
+
+    def result(self) -> dict:
+        return {"size": self.size, "dtype": str(self.dtype).removeprefix("torch."),
+                "parameters": {r: count_parameters(c) for r, c in self.codecs.items()},
+                "decode_step_all_three": _percentiles(self.samples_s)}
+
+
+def bench(sizes: list[str], dtypes: list[str], steps: int, warmup: int) -> dict:
+    """Every variant steps in turn with the baseline, so all see the same machine load."""
+    variants = [_Variant(size, getattr(torch, dtype), steps + warmup) for size in sizes for dtype in dtypes]
+    a, b = torch.randn(256, 2048), torch.randn(2048, 256)
+    baseline_s = []
+    for i in range(steps + warmup):
+        for variant in variants:
+            elapsed = variant.step(i)
+            if i >= warmup:
+                variant.samples_s.append(elapsed)
         base = _baseline_workload(a, b)
         if i >= warmup:
-            step_s.append(elapsed)
             baseline_s.append(base)
-    for decoder in decoders.values():
-        decoder.close()
-    return {"size": size, "dtype": str(dtype).removeprefix("torch."), "steps": steps, "parameters": {r: count_parameters(c) for r, c in codecs.items()},
-            "decode_step_all_three": _percentiles(step_s), "baseline_matmul": _percentiles(baseline_s)}
+    return {"baseline_matmul": _percentiles(baseline_s), "runs": [v.result() for v in variants]}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -72,21 +89,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=30)
-    parser.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"], choices=["float32", "bfloat16"],
+    parser.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"], choices=["float32", "bfloat16", "float16"],
                         help="weights and activations of the codecs")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    results = {"threads": torch.get_num_threads(), "torch": torch.__version__, "goal_median_ms": GOAL_MEDIAN_MS,
-               "runs": [bench_size(size, args.steps, args.warmup, getattr(torch, dtype))
-                        for size in args.sizes for dtype in args.dtypes]}
+    results = {"threads": torch.get_num_threads(), "torch": torch.__version__, "steps": args.steps,
+               "goal_median_ms": GOAL_MEDIAN_MS, **bench(args.sizes, args.dtypes, args.steps, args.warmup)}
     if args.json:
         print(json.dumps(results, indent=2))
         return
+    print(f"baseline (4 x 256x2048x256 matmul) median {results['baseline_matmul']['median_ms']:.2f} ms")
     for r in results["runs"]:
-        d, base = r["decode_step_all_three"], r["baseline_matmul"]
-        print(f"{r['size']:>9} {r['dtype']:>8}: decode step (3 codecs) median {d['median_ms']:.2f} ms, p95 {d['p95_ms']:.2f}, "
-              f"p99 {d['p99_ms']:.2f}  | baseline median {base['median_ms']:.2f} ms")
+        d = r["decode_step_all_three"]
+        print(f"{r['size']:>9} {r['dtype']:>8}: decode step (3 codecs) median {d['median_ms']:.2f} ms, "
+              f"p95 {d['p95_ms']:.2f}, p99 {d['p99_ms']:.2f}")
 
 
 if __name__ == "__main__":

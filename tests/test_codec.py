@@ -106,6 +106,16 @@ def test_streaming_at_small_size_with_the_25_step_context():
     torch.testing.assert_close(streamed, offline, atol=1e-5, rtol=0)
 
 
+def test_half_precision_streaming_stays_close_to_float32():
+    codec, x = _trained_like("upper")
+    codes = codec.encode(x)
+    offline = codec.decode(codes)
+    with StreamingDecoder(codec.half(), batch_size=4) as decoder:
+        streamed = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(codes.shape[-1])], dim=1)
+    assert streamed.dtype == torch.float32
+    torch.testing.assert_close(streamed, offline, atol=2e-2, rtol=0)
+
+
 def test_appending_input_never_changes_earlier_output():
     codec, x = _trained_like("lower")
     codes = codec.encode(x)

@@ -193,4 +193,4 @@ class ResidualVectorQuantizer(nn.Module):
         if codes.dim() != 3 or codes.shape[1] > self.n_q:
             raise ValueError(f"codes must be (B, K<={self.n_q}, S), got {tuple(codes.shape)}")
         summed = sum(cb.decode(codes[:, k]) for k, cb in enumerate(self._codebooks()[:codes.shape[1]]))  # (B, S, Dq)
-        return self.output_proj(summed.transpose(1, 2))
+        return F.linear(summed, self.output_proj.weight[..., 0]).transpose(1, 2)  # the 1x1 conv as a matmul

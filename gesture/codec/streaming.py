@@ -48,7 +48,10 @@ class _CodecHalf:
 
 
 class StreamingDecoder(_CodecHalf):
-    """codes (B, K, 1) per step -> (B, FRAMES_PER_STEP, nfeats)."""
+    """codes (B, K, 1) per step -> (B, FRAMES_PER_STEP, nfeats) float32.
+
+    The codec may be cast to float16 first (`codec.half()`): the step is bound by reading weights,
+    and fp16 matches fp32 to ~1e-4 (see bench/codec.py and tests/test_codec.py)."""
 
     def __init__(self, codec: GestureCodec, batch_size: int = 1) -> None:
         super().__init__(codec, (codec.transformer_decoder, codec.seanet_decoder), batch_size)
@@ -57,7 +60,7 @@ class StreamingDecoder(_CodecHalf):
     def step(self, codes: torch.Tensor) -> torch.Tensor:
         if codes.dim() != 3 or codes.shape[0] != self.batch_size or codes.shape[2] != 1:
             raise ValueError(f"codes must be ({self.batch_size}, K, 1), got {tuple(codes.shape)}")
-        return self.codec.decode(codes)
+        return self.codec.decode(codes).float()
 
 
 class StreamingEncoder(_CodecHalf):
