@@ -204,7 +204,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--experiment-dir", type=Path, required=True,
                    help="the release experiment: config.yaml, speaker_id_to_index.json, tokens_idle_slices/, GLM")
-    p.add_argument("--codec-dir", type=Path, help="where the three codec checkpoints are, searched recursively (default: --experiment-dir)")
+    p.add_argument("--codec-dir", type=Path,
+                   help="where the three codec checkpoints are, searched recursively (default: --experiment-dir)")
     p.add_argument("--glm", type=Path, help="the GLM safetensors (default: the one under --experiment-dir)")
     for region in REGIONS:
         p.add_argument(f"--{region}", type=Path, help=f"the {region} codec safetensors (default: found by shape)")
@@ -244,7 +245,8 @@ def _print_summary(out: Path, report: dict) -> None:
     speakers = ", ".join(f"{n} ({i})" for n, i in sorted(report["speakers"].items(), key=lambda kv: kv[1]))
     print(f"speakers: {speakers}")
     if speaker is not None:
-        print(f"run it with: python launch.py --mic --config configs/miburi-release.yaml --set gesture.speaker={speaker}")
+        print("run it with: python launch.py --mic --config configs/miburi-release.yaml "
+              f"--set gesture.speaker={speaker}")
 
 
 if __name__ == "__main__":

@@ -59,9 +59,11 @@ def _overrides(moshi_dir: Path, out: Path) -> list[str]:
     """The release config pointed at the tiny files (a CPU Moshi, the converted tiny release)."""
     values = {
         "dialogue.moshi.lm_weights": moshi_dir / "model.safetensors",
-        "dialogue.moshi.mimi_weights": moshi_dir / "mimi.safetensors", "dialogue.moshi.tokenizer": moshi_dir / "spm.model",
+        "dialogue.moshi.mimi_weights": moshi_dir / "mimi.safetensors",
+        "dialogue.moshi.tokenizer": moshi_dir / "spm.model",
         "dialogue.moshi.lm_config": moshi_dir / "lm.json", "dialogue.moshi.mimi_config": moshi_dir / "mimi.json",
-        "dialogue.moshi.device": "cpu", "gesture.lm_checkpoint": out / "lm", "gesture.codec_checkpoints": out / "codecs",
+        "dialogue.moshi.device": "cpu", "gesture.lm_checkpoint": out / "lm",
+        "gesture.codec_checkpoints": out / "codecs",
         "gesture.idle.slices_dir": out / "idle", "gesture.warmup_steps": 1,
     }
     return [f"{key}={value}" for key, value in values.items()]

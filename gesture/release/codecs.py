@@ -79,8 +79,7 @@ class CodecShapes:
 def read_codec_shapes(source: SourceCheckpoint) -> CodecShapes:
     n_filters, _, kernel = source.shape(FIRST_CONV)  # (F, nfeats, K)
     residual = _count_blocks(source)
-    hidden, _, residual_kernel = source.shape("seanet_encoder.model.1.block.1.conv.conv.weight_v") if residual \
-        else (n_filters, 0, 3)
+    hidden, _, residual_kernel = source.shape("seanet_encoder.model.1.block.1.conv.conv.weight_v")  # (F/c, F, k)
     down_out, down_in, down_kernel = source.shape(f"seanet_encoder.model.{residual + 2}.conv.conv.weight_v")
     if down_in != n_filters or down_kernel % 2:
         raise ReleaseError(f"{source.path}: key 'seanet_encoder.model.{residual + 2}.conv.conv.weight_v' has shape "
@@ -93,7 +92,8 @@ def read_codec_shapes(source: SourceCheckpoint) -> CodecShapes:
                            f"{hidden} channels, which does not divide {n_filters}")
     return CodecShapes(n_filters=n_filters, kernel_size=kernel, residual_layers=residual, compress=n_filters // hidden,
                        residual_kernel_size=residual_kernel, downsample_ratio=down_kernel // 2, latent_dim=latent,
-                       dim_feedforward=ffn, num_layers=source.count("transformer_encoder.transformer.layers.{}.norm1.weight"),
+                       dim_feedforward=ffn,
+                       num_layers=source.count("transformer_encoder.transformer.layers.{}.norm1.weight"),
                        n_q=source.count("quantizer.vq.layers.{}._codebook.embedding_sum"), codebook_size=card,
                        codebook_dim=code_dim)
 

@@ -78,16 +78,16 @@ def read_glm_layout(source: SourceCheckpoint, config: ExperimentConfig, region_l
         card=card, code_dim=code_dim, n_speakers=n_speakers, va_head=has_va and not face_va,
         va_use_face_logits=False)
     text_vocab, embed_dim = source.shape("text_procemb.weight")
-    spec = ConditionSpec(name=CONDITION_NAME, text_vocab=text_vocab, audio_card=source.shape("audio_procemb.0.weight")[0],
-                         embed_dim=embed_dim, n_audio_codebooks=source.count("audio_procemb.{}.weight"))
+    spec = ConditionSpec(name=CONDITION_NAME, text_vocab=text_vocab,
+                         audio_card=source.shape("audio_procemb.0.weight")[0], embed_dim=embed_dim,
+                         n_audio_codebooks=source.count("audio_procemb.{}.weight"))
     ignored = {}
     if face_va:
         reason = "face-logit voice-activity head (training-only auxiliary), dropped"
         ignored = {k: reason for k in source.tensors if k.startswith(("vad_face_proj.", "vad_predictor."))}
     unused = {
-        f"depth_transformer.layers.*.cross_attns.*.{{key,val}}_projs.1-{sizes.n_depth - 1}": "kept; every depth "
-        "position uses the "
-        "trained index-0 projections (MIBURI-FACTS section 9)",
+        f"depth_transformer.layers.*.cross_attns.*.{{key,val}}_projs.1-{sizes.n_depth - 1}":
+            "kept; every depth position uses the trained index-0 projections (MIBURI-FACTS section 9)",
         "gesture_codec_layers.*": "kept; frozen codec codebooks, checked against the codecs",
     }
     return GlmLayout(sizes, spec, ignored, unused)

@@ -66,7 +66,8 @@ class ReferenceSizes:
 
 
 def _weight_norm_conv(prefix: str, c_out: int, c_in: int, kernel: int) -> Layout:
-    return {f"{prefix}.bias": (c_out,), f"{prefix}.weight_g": (c_out, 1, 1), f"{prefix}.weight_v": (c_out, c_in, kernel)}
+    return {f"{prefix}.bias": (c_out,), f"{prefix}.weight_g": (c_out, 1, 1),
+            f"{prefix}.weight_v": (c_out, c_in, kernel)}
 
 
 def _codec_transformer(prefix: str, s: ReferenceSizes, layers: int) -> Layout:
