@@ -479,3 +479,22 @@ def build_avatar(skeleton: Skeleton | None = None) -> BodyModel:
         v_template=vertices, faces=faces.astype(np.int64), weights=weights,
         j_regressor=joint_regressor(vertices, rest), shapedirs=shapedirs, exprdirs=exprdirs, posedirs=None,
         parents=tuple(skeleton.parents), colours=np.clip(colours, 0, 1), name="mannequin")
+
+
+def main(argv=None) -> int:
+    """python -m render.avatar --export SMPLX_MANNEQUIN.npz: write the mannequin as an SMPL-X model file."""
+    import argparse
+
+    from render.body_model import export_smplx_npz
+
+    p = argparse.ArgumentParser(prog="python -m render.avatar", description=main.__doc__)
+    p.add_argument("--export", required=True, metavar="SMPLX_NAME.npz", help="output path (name must start SMPLX_)")
+    args = p.parse_args(argv)
+    model = build_avatar()
+    path = export_smplx_npz(model, args.export)
+    print(f"{path}: {model.n_vertices} vertices, {len(model.faces)} faces")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -86,11 +86,12 @@ def render_motion(motion_path, wav_path, mp4_path, camera="full", width=512, hei
     from render.mp4 import Mp4Writer
     from render.view import AvatarView, load_body
 
-    poses, trans, expressions, _ = load_motion_25fps(motion_path)
+    poses, trans, expressions, betas = load_motion_25fps(motion_path)
     stop = len(poses) if max_frames is None else min(len(poses), start_frame + max_frames)
     audio = frame_audio(wav_path, len(poses))[start_frame:stop]
     body = load_body(body_model)
-    view = AvatarView(body, width, height, camera=camera, platform=platform)
+    # the motion's betas shape a real SMPL-X body; the mannequin's own shape space is not SMPL-X's
+    view = AvatarView(body, width, height, camera=camera, platform=platform, betas=betas if body_model else None)
     encoder = EncoderThread(Mp4Writer(mp4_path, width, height))
     t0 = time.perf_counter()
     committed = False
@@ -116,9 +117,10 @@ def render_still(motion_path, png_path, at_s: float, camera="full", width=512, h
 
     from render.view import AvatarView, load_body
 
-    poses, trans, expressions, _ = load_motion_25fps(motion_path)
+    poses, trans, expressions, betas = load_motion_25fps(motion_path)
     target = min(int(round(at_s * MOTION_FPS)), len(poses) - 1)
-    view = AvatarView(load_body(body_model), width, height, camera=camera, platform=platform)
+    view = AvatarView(load_body(body_model), width, height, camera=camera, platform=platform,
+                      betas=betas if body_model else None)
     try:
         for i in range(max(0, target - MOTION_FPS), target + 1):
             image = view.frame(poses[i], trans[i], expressions[i])

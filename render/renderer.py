@@ -39,7 +39,7 @@ class CameraPreset:
 
 CAMERA_PRESETS = {
     "full": CameraPreset(anchor_joint=0, height_above_anchor_m=-0.07, view_height_m=2.2, elevation_deg=6.0),
-    "upper": CameraPreset(anchor_joint=9, height_above_anchor_m=0.02, view_height_m=1.0, elevation_deg=4.0),
+    "upper": CameraPreset(anchor_joint=9, height_above_anchor_m=0.1, view_height_m=1.05, elevation_deg=4.0),
     "face": CameraPreset(anchor_joint=15, height_above_anchor_m=0.065, view_height_m=0.36, elevation_deg=2.0),
 }
 

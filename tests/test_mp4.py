@@ -156,3 +156,57 @@ def test_render_component_live_drops_late_frames_and_keeps_sync(tmp_path):
         component.close()
     assert component.counters()["dropped_frames"] == 4
     check_av_sync(decode(out), 8)  # dropped frames repeat the last one: the audio keeps its place
+
+
+class _RecordingWriter:
+    """Stands in for Mp4Writer in the timeline tests: records what would be encoded."""
+
+    def __init__(self):
+        self.width, self.height, self.frames_written = 8, 8, 0
+        self.written: list[tuple[int, float]] = []  # (frame value, first audio sample)
+
+    def write(self, rgb, audio):
+        self.written.append((int(rgb[0, 0, 0]), float(np.asarray(audio).reshape(-1)[0])))
+        self.frames_written += 1
+
+
+def _frame(value: int) -> np.ndarray:
+    return np.full((8, 8, 3), value, np.uint8)
+
+
+def _audio(step: int) -> np.ndarray:
+    return np.full(STEP_SAMPLES, step / 100, np.float32)
+
+
+def test_timeline_offline_waits_for_audio_and_frames_in_step_order():
+    from render.process import StepTimeline
+
+    writer = _RecordingWriter()
+    timeline = StepTimeline(writer, stereo=False, live=False)
+    timeline.add_frame(0, 0, _frame(10))
+    timeline.add_frame(0, 1, _frame(11))
+    assert writer.written == []  # no audio yet
+    timeline.add_frame(1, 0, _frame(20))
+    timeline.add_frame(1, 1, _frame(21))
+    timeline.add_audio(1, _audio(1), np.zeros(STEP_SAMPLES, np.float32))
+    assert writer.written == []  # step 0 is still incomplete: offline never skips ahead
+    timeline.add_audio(0, _audio(0), np.zeros(STEP_SAMPLES, np.float32))
+    assert [w[0] for w in writer.written] == [10, 11, 20, 21]
+    assert [w[1] for w in writer.written] == pytest.approx([0.0, 0.0, 0.01, 0.01])
+    timeline.add_audio(2, _audio(2), np.zeros(STEP_SAMPLES, np.float32))
+    timeline.finish()  # end of stream: step 2 has audio but no frames -> repeats the last frame
+    assert [w[0] for w in writer.written[4:]] == [21, 21] and timeline.repeated_frames == 2
+
+
+def test_timeline_live_fills_a_missing_frame_once_a_later_step_is_complete():
+    from render.process import StepTimeline
+
+    writer = _RecordingWriter()
+    timeline = StepTimeline(writer, stereo=True, live=True)
+    timeline.add_audio(0, _audio(0), _audio(50))
+    timeline.add_frame(0, 0, _frame(10))  # frame 1 of step 0 was dropped
+    timeline.add_audio(1, _audio(1), _audio(51))
+    timeline.add_frame(1, 0, _frame(20))
+    timeline.add_frame(1, 1, _frame(21))
+    assert [w[0] for w in writer.written] == [10, 10, 20, 21]
+    assert writer.written[0][1] == pytest.approx(0.5)  # stereo: user on the left channel
