@@ -18,7 +18,7 @@ import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import uuid  # noqa: E402
-from dataclasses import asdict  # noqa: E402
+from dataclasses import asdict, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import yaml  # noqa: E402
@@ -48,6 +48,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--mp4", metavar="OUT", help="write the rendered conversation to this MP4")
     p.add_argument("--fast", action="store_true", help="as fast as possible and lossless (offline)")
     p.add_argument("--seed", type=int, help="random seed (offline runs are deterministic with it)")
+    p.add_argument("--character", metavar="NAME|INDEX",
+                   help="the speaker the gesture model imitates (a name from the checkpoint's speaker map, or a row)")
     p.add_argument("--report", metavar="DIR", help="report directory (default runs/<time>/)")
     p.add_argument("--worker", action="store_true",
                    help="only start this host's stages (run.spawn); another host's launch.py supervises")
@@ -83,6 +85,16 @@ def mode_overrides(args: argparse.Namespace, speak_duration_s: float | None) -> 
     return out
 
 
+def with_character(app: AppConfig, character: str) -> AppConfig:
+    """Resolve --character against the LM checkpoint's speaker map."""
+    from gesture.release.speakers import resolve_character_for_checkpoint
+
+    if app.gesture.lm_checkpoint is None:
+        raise ConfigError("--character: gesture.lm_checkpoint is not set")
+    speaker = resolve_character_for_checkpoint(Path(app.gesture.lm_checkpoint), character)
+    return replace(app, gesture=replace(app.gesture, speaker=speaker))
+
+
 def check_inputs(app: AppConfig) -> None:
     """Fail before any process starts, with one line, on a bad recording or a missing microphone."""
     if "io" not in app.run.local_stages:
@@ -101,13 +113,15 @@ def main(argv=None) -> int:
     try:
         speak_s = len(load_audio(args.speak, SAMPLE_RATE_HZ)) / SAMPLE_RATE_HZ if args.speak else None
         app = load_app_config(args.config, [*mode_overrides(args, speak_s), *args.overrides])
+        if args.character is not None:
+            app = with_character(app, args.character)
         check_inputs(app)
     except (ConfigError, AudioFileError, NoAudioDevice) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USAGE
     run_dir = app.run.resolve_report_dir(time.strftime("%Y%m%d-%H%M%S"))
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(app))), sort_keys=False))
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False))
     run = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
     if args.worker:
         return run_worker(app, run)
