@@ -52,6 +52,9 @@ def test_bad_options_name_the_option():
     with pytest.raises(ConfigError, match="codec.regions.face: missing"):
         codec_file_config_from_dict({"codec": {"regions": {"upper": {"n_q": 8, "num_layers": 8, "num_heads": 4},
                                                            "lower": {"n_q": 8, "num_layers": 8, "num_heads": 4}}}})
+    with pytest.raises(ConfigError, match="codec.regions.face.n_q: must be > 0"):
+        codec_file_config_from_dict({"codec": {"regions": {r: {"n_q": 0 if r == "face" else 8, "num_layers": 1,
+                                                               "num_heads": 2} for r in ("upper", "lower", "face")}}})
     with pytest.raises(ConfigError, match="train.window_frames"):
         codec_file_config_from_dict({"train": {"window_frames": 7}})
     with pytest.raises(ConfigError, match="region"):

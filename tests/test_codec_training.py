@@ -97,3 +97,23 @@ def test_short_training_run_lowers_mpjpe_on_the_clip_and_held_out(tmp_path, caps
     report = json.loads(capsys.readouterr().out)
     for split in ("train", "heldout"):
         assert report["last"][split]["mpjpe_mm"] < 0.6 * report["first"][split]["mpjpe_mm"], split
+
+
+@pytest.mark.skipif(not CLIP.is_file(), reason="needs ../shared/data/beat2")
+def test_training_data_from_a_chunk_cache(tmp_path):
+    from gesture.codec.data import load_motion_splits
+    from gesture.data.beat2 import find_takes
+    from gesture.data.cache import build_cache
+    from gesture.data.config import DataConfig
+
+    build_cache(find_takes(CLIP.parent), DataConfig(), tmp_path / "cache")
+    train, heldout = load_motion_splits(tmp_path / "cache", holdout_seconds=10.0)
+    assert [s.num_frames for s in train] == [250] * 6 and heldout == []  # the clip is a train take
+    assert train[0].features["lower"].shape == (250, 61) and train[0].poses.shape == (250, 55, 3)
+
+
+def test_missing_data_is_a_clear_error(tmp_path):
+    from gesture.codec.data import load_motion_splits
+
+    with pytest.raises(FileNotFoundError, match="neither a BEAT2 motion npz nor a chunk cache"):
+        load_motion_splits(tmp_path / "nothing.npz", 10.0)

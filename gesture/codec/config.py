@@ -2,6 +2,8 @@
 
 `load_codec_config(path)` returns a `CodecFileConfig`; `CodecConfig.region(name)` gives the sizes of
 one region's codec. configs/codec/reference.yaml holds the paper's sizes, small.yaml a CPU size.
+Latents stay float32 before the RVQ (the reference's codec training cast them to bf16; its LM
+training and demo used fp32, as we do everywhere).
 """
 
 from __future__ import annotations
@@ -33,9 +35,6 @@ class RegionSizes:
     n_q: int
     num_layers: int
     num_heads: int
-
-    def __post_init__(self) -> None:
-        _check_positive("codec.regions.<region>", n_q=self.n_q, num_layers=self.num_layers, num_heads=self.num_heads)
 
 
 def _reference_regions() -> dict[str, RegionSizes]:
@@ -89,6 +88,8 @@ class CodecConfig:
         for name, sizes in self.regions.items():
             if name not in REGIONS:
                 raise ConfigError(f"codec.regions.{name}: unknown region (known: {', '.join(REGIONS)})")
+            _check_positive(f"codec.regions.{name}", n_q=sizes.n_q, num_layers=sizes.num_layers,
+                            num_heads=sizes.num_heads)
             if self.latent_dim % sizes.num_heads or (self.latent_dim // sizes.num_heads) % 2:
                 raise ConfigError(f"codec.regions.{name}.num_heads: latent_dim {self.latent_dim} must split "
                                   f"into an even head dim, got {sizes.num_heads} heads")
