@@ -29,9 +29,10 @@ class Skinner:
             betas = np.asarray(betas, dtype=np.float64).reshape(-1)[:model.shapedirs.shape[2]]
             v_shaped = v_shaped + model.shapedirs[:, :, :len(betas)] @ betas
         self._v_shaped = v_shaped  # (V, 3)
-        self._exprdirs = model.exprdirs.reshape(n * 3, -1)  # (V*3, 100)
+        self._face_rows = np.flatnonzero(np.any(model.exprdirs != 0, axis=(1, 2)))  # vertices expressions move
+        self._exprdirs = model.exprdirs[self._face_rows].reshape(len(self._face_rows) * 3, -1)  # (V_face*3, 100)
         self._posedirs = None if model.posedirs is None else model.posedirs.reshape(n * 3, -1)  # (V*3, 486)
-        self._j_regressor = model.j_regressor  # (55, V)
+        self._j_regressor = scipy.sparse.csr_matrix(model.j_regressor)  # (55, V), a few vertices per joint
         self._weights = scipy.sparse.csr_matrix(np.where(np.abs(model.weights) > 1e-9, model.weights, 0.0))
         self.rest_joints = self._j_regressor @ v_shaped  # (55, 3) at zero expression
 
@@ -44,7 +45,8 @@ class Skinner:
         v = self._v_shaped
         if expression is not None:
             expression = np.asarray(expression, dtype=np.float64).reshape(-1)[:self._exprdirs.shape[1]]
-            v = v + (self._exprdirs[:, :len(expression)] @ expression).reshape(-1, 3)
+            v = v.copy()
+            v[self._face_rows] += (self._exprdirs[:, :len(expression)] @ expression).reshape(-1, 3)
         rest = self._j_regressor @ v  # (55, 3)
         rotations = axis_angle_to_matrix(torch.from_numpy(poses))  # (55, 3, 3)
         if self._posedirs is not None:
