@@ -229,7 +229,8 @@ class RunState:
                 "wait_for_start": self.wait_for_start}
 
     def counters_event(self, own: dict[str, int]) -> Event:
-        return {"type": "counters", "stages": {s: dict(c) for s, c in self.counters.items()}, "dashboard": own}
+        return {"type": "counters", "stages": {s: dict(c) for s, c in self.counters.items()},
+                "states": dict(self.stage_states), "dashboard": own}
 
 
 def hello_event(pipeline: Sequence[str], live: bool, session: str) -> Event:

@@ -155,7 +155,8 @@ function onTurn(t) {
     turnEls.set(t.id, el);
     box.appendChild(el);
   }
-  const who = `<div class="who">${t.speaker === "user" ? "you" : "agent"} · ${(t.start_step * STEP_S).toFixed(1)} s</div>`;
+  const when = (t.start_step * STEP_S).toFixed(1);
+  const who = `<div class="who">${t.speaker === "user" ? "you" : "agent"} · ${when} s</div>`;
   const words = t.words.map((w, i) => `<span${i === t.interrupted_at ? ' class="cut"' : ""}>${esc(w)}</span>`);
   const partial = t.partial ? ` <span class="partial">${esc(t.partial)}…</span>` : "";
   const tag = t.interrupted_at !== null ? '<span class="tag">✂ interrupted</span>' : "";
@@ -181,7 +182,10 @@ function onVad(e) {
 function drawStrip() {
   const c = $("turnstrip"), g = c.getContext("2d"), w = c.width / HISTORY;
   g.fillStyle = TURN_COLORS.none; g.fillRect(0, 0, c.width, c.height);
-  turnHistory.forEach((t, i) => { g.fillStyle = TURN_COLORS[t]; g.fillRect((HISTORY - turnHistory.length + i) * w, 0, Math.ceil(w), c.height); });
+  turnHistory.forEach((t, i) => {
+    g.fillStyle = TURN_COLORS[t];
+    g.fillRect((HISTORY - turnHistory.length + i) * w, 0, Math.ceil(w), c.height);
+  });
 }
 
 // ---- latency chart --------------------------------------------------------------------------------------
@@ -244,6 +248,7 @@ let stageStates = {};
 function renderStageStates(states) { stageStates = states || stageStates; }
 
 function onCounters(e) {
+  renderStageStates(e.states);
   const rows = Object.entries(e.stages).map(([name, c]) => [name, stageStates[name] || "", c]);
   rows.push(["dashboard", `${e.dashboard.pages || 0} page(s)`, {handled: e.dashboard.received_frames,
     dropped: (e.dashboard.dropped || 0) + (e.dashboard.skipped_frames || 0), lost: e.dashboard.lost,
