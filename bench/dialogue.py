@@ -37,15 +37,15 @@ def conversation(beat2_s: float, pause_s: float) -> np.ndarray:
     for path, seconds in zip(RECORDINGS, (None, beat2_s)):
         pcm, rate = sf.read(str(path), dtype="float32", always_2d=True)
         pcm = resample_poly(pcm.mean(1), SAMPLE_RATE_HZ, rate).astype(np.float32)
-        parts += [pcm[: int(seconds * SAMPLE_RATE_HZ)] if seconds else pcm, np.zeros(int(pause_s * SAMPLE_RATE_HZ), np.float32)]
+        turn = pcm[: int(seconds * SAMPLE_RATE_HZ)] if seconds else pcm
+        parts += [turn, np.zeros(int(pause_s * SAMPLE_RATE_HZ), np.float32)]
     pcm = np.concatenate(parts)
     return pcm[: len(pcm) // STEP_SAMPLES * STEP_SAMPLES]
 
 
-def _timed(obj, name: str, totals: dict) -> None:
+def _timed(obj, name: str, label: str, totals: dict) -> None:
     """Accumulate the CPU time of obj.name() calls into totals[label] for the current step."""
     method = getattr(obj, name)
-    label = {"listener": "listener", "speaker": "speaker"}.get(type(obj).__name__.lower().replace("user", ""), "codes")
 
     def wrapper(*args, **kwargs):
         t = time.process_time()
@@ -76,9 +76,9 @@ def run(beat2_s: float, pause_s: float) -> dict:
     torch.set_num_threads(1)
     backend = LocalBackend.from_config(build_dataclass(DialogueConfig, {}, "dialogue"))
     parts: dict[str, float] = {}
-    for obj, name in ((backend.listener, "step"), (backend.speaker, "step"), (backend.agent_codes, "step"),
-                      (backend.user_codes, "step")):
-        _timed(obj, name, parts)
+    for obj, label in ((backend.listener, "listener"), (backend.speaker, "speaker"), (backend.agent_codes, "codes"),
+                       (backend.user_codes, "codes")):
+        _timed(obj, "step", label, parts)
     pcm = conversation(beat2_s, pause_s)
     backend.step(np.zeros(STEP_SAMPLES, np.float32))  # warm-up outside the measurement
     backend.reset()

@@ -61,7 +61,8 @@ class AsrConfig:
 
     def __post_init__(self):
         _require(self.budget_steps > 1.0, "asr.budget_steps", f"must be > 1 to catch up, got {self.budget_steps}")
-        _require(self.max_hmm_per_frame >= 100, "asr.max_hmm_per_frame", f"must be >= 100, got {self.max_hmm_per_frame}")
+        _require(self.max_hmm_per_frame >= 100, "asr.max_hmm_per_frame",
+                 f"must be >= 100, got {self.max_hmm_per_frame}")
 
 
 @dataclass(frozen=True)
@@ -91,7 +92,8 @@ class ResponderConfig:
 
     def __post_init__(self):
         _require(self.timeout_s > 0, "responder.timeout_s", f"must be > 0, got {self.timeout_s}")
-        _require(self.url.startswith(("http://", "https://")), "responder.url", f"must be an http(s) URL, got {self.url!r}")
+        _require(self.url.startswith(("http://", "https://")), "responder.url",
+                 f"must be an http(s) URL, got {self.url!r}")
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,8 @@
 A double-talk detector in the Geigel family, with a learned echo return: the agent's played signal is
 known, so for each microphone block the loudest the echo could be is `coupling × (the highest short-time
 RMS of the playback over every delay up to max_delay)`. `coupling` (mic RMS / that highest playback RMS) is learned
-from blocks where the mic clearly is the playback (normalised cross-correlation ≥ 0.6 at some delay, playback above -40 dBFS),
+from blocks where the mic clearly is the playback (normalised cross-correlation ≥ 0.6 at some delay,
+playback above -40 dBFS),
 jumping up at once and decaying slowly. A block counts as user speech only when the mic is `margin_db`
 above that bound; otherwise the VAD sees silence, so the agent's own voice (even with room reverberation)
 cannot barge in, while a user talking over it louder than the echo still can. With no playback, or no echo

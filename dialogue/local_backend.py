@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.messages import DialogueStep
+from agent.messages import DialogueStep, VadState
 from agent.timing import STEP_SAMPLES
 from dialogue.config import DialogueConfig
 from dialogue.listener import STEP_S, Heard, UserListener
@@ -20,7 +20,6 @@ from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, Strea
 from dialogue.text_vocab import LOCAL_SPEC
 from dialogue.transcript import Transcript, Turn, Word
 from dialogue.tts import EspeakTts
-from agent.messages import VadState
 
 
 def check_user_pcm(user_pcm: np.ndarray) -> np.ndarray:

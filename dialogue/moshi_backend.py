@@ -82,8 +82,8 @@ class MoshiBackend:
 
     @classmethod
     def from_config(cls, cfg: DialogueConfig, seed: int = 0) -> "MoshiBackend":
-        from moshi.models import loaders
         import sentencepiece
+        from moshi.models import loaders
 
         m = cfg.moshi
         files = check_moshi_files(m)

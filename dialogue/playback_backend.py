@@ -25,7 +25,10 @@ from dialogue.tts import Utterance, WordTiming
 
 def recording_utterance(path: str, transcript: str | None) -> Utterance:
     pcm = load_audio(path, SAMPLE_RATE_HZ)
-    words = words_from_transcript(Path(transcript), pcm, SAMPLE_RATE_HZ) if transcript else recognize(pcm, SAMPLE_RATE_HZ)
+    if transcript:
+        words = words_from_transcript(Path(transcript), pcm, SAMPLE_RATE_HZ)
+    else:
+        words = recognize(pcm, SAMPLE_RATE_HZ)
     timings = tuple(WordTiming(w.word, int(round(w.start_s * SAMPLE_RATE_HZ))) for w in words
                     if 0 <= w.start_s * SAMPLE_RATE_HZ < len(pcm))
     return Utterance(text=" ".join(w.word for w in words), pcm=pcm, words=timings)

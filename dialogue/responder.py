@@ -69,7 +69,8 @@ this that these those am is are was were be been being have has had having do do
 can will just not no nor only own same too very s t don now there here when where why how all any both each few
 more most other some such than into through during before after above below between off once mr mrs miss yes
 yeah okay ok oh um uh hmm well really also about like get got go going know think say said one two
-consider want need make take see look come tell give find feel try leave call might must may let put keep seem""".split())
+consider want need make take see look come tell give find feel try leave call might must may let put
+keep seem""".split())
 
 _GREETINGS = {"hello", "hi", "hey", "morning", "evening", "afternoon", "greetings"}
 _FAREWELLS = {"bye", "goodbye", "farewell", "later", "goodnight"}

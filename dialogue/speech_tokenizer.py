@@ -21,7 +21,8 @@ from torch import nn
 
 from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "speech_tokenizer" / "speech_tokenizer.safetensors"
+DEFAULT_CHECKPOINT = (Path(__file__).resolve().parents[1] / "checkpoints" / "speech_tokenizer"
+                      / "speech_tokenizer.safetensors")
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,8 @@ class CausalLogMel(nn.Module):
     def __init__(self, shape: TokenizerShape):
         super().__init__()
         self.shape = shape
-        mel = librosa.filters.mel(sr=SAMPLE_RATE_HZ, n_fft=shape.window_samples, n_mels=shape.n_mels, fmin=50, fmax=8000)
+        mel = librosa.filters.mel(sr=SAMPLE_RATE_HZ, n_fft=shape.window_samples, n_mels=shape.n_mels,
+                                  fmin=50, fmax=8000)
         self.register_buffer("mel_basis", torch.from_numpy(mel).float(), persistent=False)  # (M, F)
         self.register_buffer("window", torch.hann_window(shape.window_samples), persistent=False)
 
@@ -131,7 +133,8 @@ class SpeechTokenizer(nn.Module):
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(
-                f"speech tokenizer checkpoint not found: {path} (train one with `python -m dialogue.train_speech_tokenizer`)")
+                f"speech tokenizer checkpoint not found: {path} "
+                "(train one with `python -m dialogue.train_speech_tokenizer`)")
         with safe_open(str(path), "pt") as f:
             shape = TokenizerShape(**json.loads(f.metadata()["shape"]))
         model = cls(shape)

@@ -25,8 +25,8 @@ from dialogue.tts import EspeakTts
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 TRAIN_RECORDINGS = ("beat2/2_scott_0_1_1.wav",)
 HELDOUT_RECORDINGS = ("speech/librivox_0870.wav",)
-VOICES = ("en-us", "en", "en-us+f3", "en-us+m3", "en+f2", "en-gb-x-rp+m7", "en-us+f5", "en-us+klatt", "en-gb-scotland+m1",
-          "en-029+f1", "en-us+grandma", "en-us+david")
+VOICES = ("en-us", "en", "en-us+f3", "en-us+m3", "en+f2", "en-gb-x-rp+m7", "en-us+f5", "en-us+klatt",
+          "en-gb-scotland+m1", "en-029+f1", "en-us+grandma", "en-us+david")
 HELDOUT_VOICES = ("en-us+f4", "en-gb-x-rp+m5")
 EMA_DECAY = 0.99
 COMMIT_WEIGHT = 0.25
@@ -52,7 +52,8 @@ def synthesize_corpus(rng: np.random.Generator, voices, n_sentences: int) -> np.
     """espeak-ng sentences with random voice, rate and pitch, separated by short silences."""
     pieces = []
     for sentence in random_sentences(rng, n_sentences):
-        tts = EspeakTts(voice=str(rng.choice(voices)), rate_wpm=int(rng.integers(120, 230)), pitch=int(rng.integers(15, 90)))
+        tts = EspeakTts(voice=str(rng.choice(voices)), rate_wpm=int(rng.integers(120, 230)),
+                        pitch=int(rng.integers(15, 90)))
         pieces += [tts.synthesize(sentence).pcm, np.zeros(int(rng.integers(0, SAMPLE_RATE_HZ // 2)), np.float32)]
     return np.concatenate(pieces)
 
@@ -160,9 +161,11 @@ def train(out: Path, iterations: int, n_sentences: int, seed: int, batch: int, s
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     t0 = time.time()
-    sources = [synthesize_corpus(rng, VOICES, n_sentences)] + [load_recording(SHARED_DATA / p) for p in TRAIN_RECORDINGS]
+    sources = [synthesize_corpus(rng, VOICES, n_sentences)]
+    sources += [load_recording(SHARED_DATA / p) for p in TRAIN_RECORDINGS]
     heldout = {"librivox_0870 (real, held out)": load_recording(SHARED_DATA / HELDOUT_RECORDINGS[0]),
-               "espeak (unseen voices and sentences)": synthesize_corpus(np.random.default_rng(seed + 1), HELDOUT_VOICES, 20)}
+               "espeak (unseen voices and sentences)":
+                   synthesize_corpus(np.random.default_rng(seed + 1), HELDOUT_VOICES, 20)}
     model = SpeechTokenizer(TokenizerShape())
     rvq = EmaRvqTrainer(model, rng)
     params = [p for p in model.parameters() if p.requires_grad]

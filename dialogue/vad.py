@@ -29,8 +29,8 @@ class SileroVad:
         """pcm (N,) float32 @ 16 kHz -> one probability per completed 512-sample chunk."""
         buf = np.concatenate([self._pending, np.asarray(pcm16k, np.float32)])
         n_chunks = len(buf) // VAD_CHUNK_SAMPLES
-        probs = [float(self._model(torch.from_numpy(buf[i * VAD_CHUNK_SAMPLES:(i + 1) * VAD_CHUNK_SAMPLES]), VAD_RATE_HZ))
-                 for i in range(n_chunks)]
+        chunks = [buf[i * VAD_CHUNK_SAMPLES:(i + 1) * VAD_CHUNK_SAMPLES] for i in range(n_chunks)]
+        probs = [float(self._model(torch.from_numpy(chunk), VAD_RATE_HZ)) for chunk in chunks]
         self._pending = buf[n_chunks * VAD_CHUNK_SAMPLES:].copy()
         return probs
 

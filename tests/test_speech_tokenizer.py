@@ -46,7 +46,8 @@ def test_streaming_latent_equals_offline_within_1e5(shipped, speech):
 
 def test_appending_audio_never_changes_earlier_codes(shipped, speech):
     short = shipped.encode(torch.from_numpy(speech[: 1920 * 30])[None])
-    longer = shipped.encode(torch.from_numpy(np.concatenate([speech[: 1920 * 30], np.ones(1920 * 5, np.float32)]))[None])
+    extended = np.concatenate([speech[: 1920 * 30], np.ones(1920 * 5, np.float32)])
+    longer = shipped.encode(torch.from_numpy(extended)[None])
     torch.testing.assert_close(longer[..., :30], short)
 
 
