@@ -140,6 +140,7 @@ def test_bad_inputs_raise_clear_errors():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(4 * 3600)
 def test_soak_memory_stays_flat():
     """45,000 steps (1 hour of motion) at the small size: the resident memory must not grow."""
     import os
@@ -168,6 +169,8 @@ def test_soak_memory_stays_flat():
         gen.step(int(rng.integers(-1, 8192)), rng.integers(-1, 256, 8), None)
         if i % 500 == 0:
             samples.append(rss_mb())
+        if i % 5000 == 0:
+            print(f"soak step {i}: RSS {samples[-1]:.1f} MB", flush=True)
     warm = samples[len(samples) // 10]
     print(f"soak: {steps} steps, RSS MB first {samples[0]:.1f}, after warm-up {warm:.1f}, last {samples[-1]:.1f}, "
           f"max {max(samples):.1f}")
