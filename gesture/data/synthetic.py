@@ -19,7 +19,8 @@ and barge-ins (gesture/data/synth/conversation.py), and the agent's procedural w
   ``train``; a session's content and split depend only on (seed, k), not on N;
 - ``generation.json``: the seed, session count, length and options used.
 
-Same seed -> identical bytes; sessions are independent, so ``--jobs`` does not change the output.
+Same seed -> identical bytes: every session runs in a fresh process (espeak-ng carries state from one
+utterance to the next within a process), so ``--jobs`` does not change the output either.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import json
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Optional
 
@@ -121,11 +123,11 @@ def generate_dataset(cfg: SynthConfig, root: Path | str, n_sessions: int, minute
     for sub in (MOTION_DIR, AUDIO_DIR, TRANSCRIPT_DIR):
         (root / sub).mkdir(parents=True, exist_ok=True)
     work = [(cfg, str(root), seed, k, minutes) for k in range(1, n_sessions + 1)]
-    if jobs > 1:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            ids = list(progress(pool.map(_make_session, work)))
-    else:
-        ids = [_make_session(job) for job in progress(work)]
+    # espeak-ng's output depends on what the library synthesised before in the same process (its pitch
+    # flutter state runs on), so every session gets a fresh process: the bytes depend only on (seed, k).
+    pool = ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=get_context("spawn"), max_tasks_per_child=1)
+    with pool:
+        ids = list(progress(pool.map(_make_session, work)))
     with (root / "train_test_split.csv").open("w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(["id", "type"])

@@ -76,7 +76,7 @@ def plan_head(rng: np.random.Generator, conv: Conversation, n: int, fps: float, 
               env: np.ndarray, speaking: np.ndarray) -> tuple[np.ndarray, list[float]]:
     """(T, 3) head offset (pitch down +x, yaw +y, roll +z) and the times of listening nods."""
     times = np.arange(n) / fps
-    pose = KeyTrack(np.zeros(3))
+    pose = KeyTrack(np.zeros(3), max_rate=0.4)
     for turn in conv.turns:
         if turn.kind != "turn":
             continue
@@ -179,7 +179,8 @@ class BodySolver:
         collar, sh, el, wr = SIDE_JOINTS[side][:4]
         chest_rot, chest_pos = rots[:, 9], joints[:, 9]
         target = chest_pos + np.einsum("tij,tj->ti", chest_rot, arms.wrist[:, s])
-        pole_local = np.stack([sign * (0.35 + arms.elbow_out[:, s]), -np.ones(len(target)), -0.3 * np.ones(len(target))], -1)
+        ones = np.ones(len(target))
+        pole_local = np.stack([sign * (0.45 + arms.elbow_out[:, s]), -0.35 * ones, -ones], -1)  # elbow out and back
         pole = np.einsum("tij,tj->ti", chest_rot, pole_local)
         chain = self.arm_chains[side]
         local[:, sh], theta = chain.solve(joints[:, sh], rots[:, collar], target, pole)

@@ -27,6 +27,7 @@ from gesture.data.synth.tracks import KeyTrack, smooth_noise
 SIDES = (1.0, -1.0)  # left, right: the sign of x in the chest frame
 MIN_STROKE_GAP_S = 0.45
 CHANNELS = ("wrist", "elbow_out", "supination", "flex", "hand")
+MAX_RATE = {"wrist": 0.8, "elbow_out": 1.5, "supination": 4.0, "flex": 3.0, "hand": 4.0}  # units/s per segment
 
 
 def mirror(v, side: float) -> np.ndarray:
@@ -57,10 +58,9 @@ class _Arm:
 
     def __init__(self, side: float, rest: np.ndarray):
         self.side, self.rest = side, mirror(rest, side)
-        self.tracks = {
-            "wrist": KeyTrack(self.rest), "elbow_out": KeyTrack(0.0), "supination": KeyTrack(self.REST_SUPINATION),
-            "flex": KeyTrack(self.REST_FLEX), "hand": KeyTrack(shape_weights("relaxed")),
-        }
+        initial = {"wrist": self.rest, "elbow_out": 0.0, "supination": self.REST_SUPINATION, "flex": self.REST_FLEX,
+                   "hand": shape_weights("relaxed")}
+        self.tracks = {name: KeyTrack(initial[name], MAX_RATE[name]) for name in CHANNELS}
         self.away = False  # not at rest
 
     @property
@@ -68,7 +68,9 @@ class _Arm:
         return self.tracks["wrist"].last_time
 
     def key(self, t: float, **values) -> None:
-        t = max(t, self.last_time + 0.04)
+        """Key every channel at one time (unnamed channels hold); a too-fast change delays the key."""
+        t = max([t] + [track.last_time + np.linalg.norm(np.asarray(values[name]) - track.last_value) / track.max_rate
+                       for name, track in self.tracks.items() if name in values])
         for name, track in self.tracks.items():
             track.key(t, values[name] if name in values else track.last_value)
         self.away = True

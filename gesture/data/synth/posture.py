@@ -39,7 +39,7 @@ def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np
     ankle_y = float(skeleton.rest_joints[7, 1]) + 1.3
     ankle_z = float(skeleton.rest_joints[7, 2])
     width = rng.uniform(0.09, 0.14)
-    feet = [KeyTrack((side * width, ankle_z)) for side in (1.0, -1.0)]  # (x, z) per foot
+    feet = [KeyTrack((side * width, ankle_z), max_rate=0.6) for side in (1.0, -1.0)]  # (x, z) per foot
     centre = KeyTrack((0.0, 0.0))
     lift = np.zeros((n_frames, 2))
     planted = np.ones((n_frames, 2))

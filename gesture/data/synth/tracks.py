@@ -21,8 +21,11 @@ def minimum_jerk(s: np.ndarray) -> np.ndarray:
 class KeyTrack:
     """A (T, D) signal given by keys (time, value); before the first key it holds the initial value."""
 
-    def __init__(self, initial):
+    def __init__(self, initial, max_rate: float = np.inf):
+        """``max_rate``: the largest mean rate of change (units/s) of a segment; a key that comes too soon
+        after the previous one is moved later, so that a track never jumps."""
         initial = np.atleast_1d(np.asarray(initial, np.float64))
+        self.max_rate = max_rate
         self.times: list[float] = [-1e9]
         self.values: list[np.ndarray] = [initial]
 
@@ -35,10 +38,12 @@ class KeyTrack:
         return self.values[-1]
 
     def key(self, t: float, value) -> None:
-        """Add a key; a key earlier than the last one (plus a minimum spacing) is moved after it."""
-        t = max(float(t), self.times[-1] + MIN_KEY_SPACING_S)
+        """Add a key; a key too close to the last one (see ``max_rate``) is moved after it."""
+        value = np.atleast_1d(np.asarray(value, np.float64)).copy()
+        change = float(np.linalg.norm(value - self.values[-1]))
+        t = max(float(t), self.times[-1] + max(MIN_KEY_SPACING_S, change / self.max_rate))
         self.times.append(t)
-        self.values.append(np.atleast_1d(np.asarray(value, np.float64)).copy())
+        self.values.append(value)
 
     def hold(self, t: float) -> None:
         """Stay at the last value until ``t``."""

@@ -1,0 +1,217 @@
+"""The synthetic dyadic conversation generator: determinism, BEAT2 compatibility, and how the motion behaves."""
+
+import json
+
+import numpy as np
+import pytest
+import soundfile as sf
+import torch
+
+from agent.config import ConfigError
+from gesture.data.beat2 import find_takes, read_motion, read_words
+from gesture.data.chunks import chunk_take
+from gesture.data.config import DataConfig
+from gesture.data.synth.config import SynthConfig, build_synth_config, load_synth_config
+from gesture.data.synth.conversation import AGENT, USER, build_conversation
+from gesture.data.synth.face import FACE_PATTERNS
+from gesture.data.synthetic import generate_dataset, generate_session, main as synthetic_main
+from gesture.regions import contacts_from_motion
+from gesture.rotation import axis_angle_to_matrix
+from gesture.skeleton import Skeleton, forward_kinematics_np
+from tests.data.beat2_clip import CLIP_NPZ, needs_clip
+
+torch.set_num_threads(1)
+
+FPS = 25
+# Largest rotation (rad) a joint may reach, by joint group (anatomical upper bounds, generous).
+JOINT_LIMITS_RAD = {
+    **{j: 0.8 for j in (0, 3, 6, 9, 12, 15)},  # root (incl. calibrated pitch), spine, neck, head
+    **{j: 1.0 for j in (1, 2)}, **{j: 1.5 for j in (4, 5)}, **{j: 0.9 for j in (7, 8, 10, 11)},
+    **{j: 0.6 for j in (13, 14)}, **{j: 1.9 for j in (16, 17)}, **{j: 2.5 for j in (18, 19)},
+    **{j: 1.4 for j in (20, 21)}, 22: 0.2, 23: 0.0, 24: 0.0, **{j: 1.7 for j in range(25, 55)},
+}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synthetic")
+    cfg = SynthConfig(test_fraction=0.5)
+    ids = generate_dataset(cfg, root, n_sessions=2, minutes=1.0, seed=7, jobs=2)
+    return root, ids
+
+
+@pytest.fixture(scope="module")
+def session(dataset):
+    root, ids = dataset
+    with np.load(root / "smplxflame_25" / f"{ids[0]}.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    poses = arrays["poses"].reshape(-1, 55, 3)
+    joints, _ = forward_kinematics_np(Skeleton.default(), poses, arrays["trans"])
+    doc = json.loads((root / "whisper_transcription" / f"{ids[0]}.json").read_text())
+    return {**arrays, "poses": poses, "joints": joints, "doc": doc}
+
+
+def _speed(joints: np.ndarray) -> np.ndarray:
+    """(T, J) m/s, the first frame repeated."""
+    v = np.linalg.norm(np.diff(joints, axis=0), axis=-1) * FPS
+    return np.concatenate([v[:1], v])
+
+
+def test_same_seed_same_bytes_and_different_seed_differs(tmp_path):
+    cfg = SynthConfig()
+    for name in ("a", "b"):
+        generate_dataset(cfg, tmp_path / name, n_sessions=1, minutes=0.2, seed=1)
+    files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a").rglob("*") if p.is_file())
+    assert len(files) == 7  # npz, 3 wavs, json, split csv, generation.json
+    for rel in files:
+        assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
+    _, one = generate_session(cfg, 1, 1, 0.1)
+    _, two = generate_session(cfg, 2, 1, 0.1)
+    assert not np.array_equal(one.poses, two.poses)
+
+
+def test_beat2_reader_reads_the_output_and_builds_chunks(dataset):
+    root, ids = dataset
+    takes = find_takes(root)
+    assert [t.take_id for t in takes] == ids
+    assert {t.speaker for t in takes} == {"synth"}
+    assert sorted(t.split for t in takes) == ["test", "train"]
+    motion = read_motion(takes[0].motion_path)
+    assert motion.fps == 25 and motion.poses.shape == (1500, 55, 3) and motion.betas.shape == (300,)
+    words = read_words(takes[0])
+    assert len(words) > 20 and all(0 <= w.start_s < w.end_s <= 60.0 for w in words)
+    chunks = chunk_take(takes[0], DataConfig(root=str(root)))
+    assert chunks.num_chunks == 6 and chunks.has_audio
+    assert chunks.upper.shape == (6, 250, 258) and chunks.lower.shape == (6, 250, 61) and chunks.face.shape == (6, 250, 106)
+    assert np.isfinite(chunks.upper).all() and np.abs(chunks.audio).max() > 0.05
+
+
+def test_files_hold_both_speakers_and_the_agent_channel(dataset, session):
+    root, ids = dataset
+    agent, sr = sf.read(str(root / "wave16k" / f"{ids[0]}.wav"))
+    user, _ = sf.read(str(root / "wave16k" / f"{ids[0]}_user.wav"))
+    mix, _ = sf.read(str(root / "wave16k" / f"{ids[0]}_mix.wav"))
+    assert sr == 16_000 and len(agent) == len(user) == len(mix) == 60 * 16_000
+    doc = session["doc"]
+    assert {s["speaker"] for s in doc["segments"]} == {AGENT}
+    assert {s["speaker"] for s in doc["conversation"]} == {AGENT, USER}
+    # the agent's channel is silent where the agent's vad is off for long stretches, loud where it speaks
+    hop = 16_000 // FPS
+    rms = np.sqrt((agent[: len(session["vad"]) * hop].reshape(-1, hop) ** 2).mean(1))
+    assert rms[session["vad"] == 1].mean() > 5 * rms[session["vad"] == 0].mean()
+    assert 0.2 < session["vad"].mean() < 0.8 and 0.2 < session["user_vad"].mean() < 0.8
+
+
+def test_no_nan_and_joint_angles_within_limits(session):
+    poses = session["poses"]
+    assert np.isfinite(poses).all() and np.isfinite(session["trans"]).all() and np.isfinite(session["expressions"]).all()
+    angles = np.linalg.norm(poses, axis=-1).max(0)  # (55,)
+    for j, limit in JOINT_LIMITS_RAD.items():
+        assert angles[j] <= limit + 1e-6, (j, angles[j], limit)
+    # elbows only flex (forearm forward of the upper arm), never hyperextend
+    elbow = axis_angle_to_matrix(poses[:, [18, 19]].astype(np.float64))  # (T, 2, 3, 3)
+    forward = elbow[..., 2, 0] * np.array([1.0, -1.0])  # z of the forearm's rest direction (+x left, -x right)
+    assert (forward > 0).mean() > 0.99
+
+
+def test_motion_is_smooth(session):
+    rot = axis_angle_to_matrix(session["poses"].astype(np.float64))  # (T, 55, 3, 3)
+    rel = np.einsum("tjik,tjil->tjkl", rot[:-1], rot[1:])
+    step = np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1))  # (T-1, 55) rad per frame
+    assert step.max() < 0.5  # the real BEAT2 clip peaks at 0.40 rad per frame (elbows, wrists)
+    accel = np.linalg.norm(np.diff(session["joints"], 2, axis=0), axis=-1) * FPS**2  # (T-2, 55) m/s^2
+    assert np.percentile(accel, 99.9) < 25.0
+
+
+def test_feet_planted_and_on_the_floor(session):
+    contacts = contacts_from_motion(session["poses"], session["trans"])  # (T, 4)
+    assert contacts.mean() > 0.9
+    soles = session["joints"][:, [10, 11], 1]
+    assert np.abs(np.median(soles, axis=0)).max() < 0.02
+
+
+def test_strokes_land_on_stressed_words(session):
+    speed = _speed(session["joints"])[:, [20, 21]].max(1)  # (T,) faster wrist
+    window = 5
+    padded = np.pad(speed, window, mode="edge")
+    local_max = np.stack([padded[k : k + len(speed)] for k in range(2 * window + 1)]).max(0)
+    minima = np.flatnonzero((speed[1:-1] < speed[:-2]) & (speed[1:-1] <= speed[2:]) & (speed[1:-1] < 0.5 * local_max[1:-1])) + 1
+    stressed = [w["start"] for s in session["doc"]["segments"] for w in s["words"] if w["stressed"]]
+    onsets = np.array(stressed)
+
+    def hit_rate(times):
+        frames = np.round(times * FPS).astype(int)
+        return np.mean([np.abs(minima - f).min() <= 5 for f in frames])
+
+    rng = np.random.default_rng(0)
+    speaking = np.flatnonzero(session["vad"]) / FPS
+    chance = np.mean([hit_rate(rng.choice(speaking, len(onsets))) for _ in range(20)])
+    assert len(onsets) > 20
+    assert hit_rate(onsets) > chance + 0.1, (hit_rate(onsets), chance)
+
+
+def test_listening_moves_less_than_speaking(session):
+    speed = _speed(session["joints"])[:, [15, 20, 21]].mean(1)
+    vad = session["vad"].astype(bool)
+    speaking, listening = speed[vad].mean(), speed[~vad & session["user_vad"].astype(bool)].mean()
+    assert listening < 0.7 * speaking, (listening, speaking)
+    assert listening > 0.0
+
+
+def test_face_blinks_smiles_and_jaw_follows_speech(session):
+    from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+
+    act = session["expressions"].astype(np.float64) @ EXPRESSION_MAP.T  # (T, 6) render activations
+    blink = act[:, SEMANTIC_SHAPES.index("blink")]
+    n_blinks = ((blink[1:] > 0.5) & (blink[:-1] <= 0.5)).sum()
+    assert 6 <= n_blinks <= 40  # per minute
+    assert act[:, SEMANTIC_SHAPES.index("smile")].max() > 0.3
+    jaw = session["poses"][:, 22, 0]
+    assert np.corrcoef(jaw, session["vad"])[0, 1] > 0.4
+
+
+def test_face_patterns_agree_with_the_renderer():
+    from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+
+    for name, psi in FACE_PATTERNS.items():
+        act = EXPRESSION_MAP @ psi
+        expected = np.eye(len(SEMANTIC_SHAPES))[SEMANTIC_SHAPES.index(name)]
+        np.testing.assert_allclose(act, expected, atol=1e-9, err_msg=name)
+
+
+def test_barge_in_cuts_the_agent_mid_turn():
+    cfg = SynthConfig(interruption_prob=1.0, backchannel_prob=1.0)
+    conv = build_conversation(cfg, np.random.default_rng(5), 40.0)
+    cut = [t for t in conv.turns_of(AGENT, "turn") if t.interrupted]
+    assert cut, "no agent turn was interrupted"
+    sr = conv.sample_rate_hz
+    for turn in cut:
+        user_onsets = [u.start_s for u in conv.turns_of(USER, "turn") if u.start_s < turn.end_s < u.end_s]
+        assert user_onsets and turn.end_s - max(user_onsets) <= cfg.reaction_s[1] + 0.05  # the user barged in
+        after = conv.channels[AGENT][int((turn.end_s + 0.01) * sr): int((turn.end_s + 0.1) * sr)]
+        assert np.abs(after).max() < 1e-3 or any(b.start_s < turn.end_s + 0.1 for b in conv.turns_of(AGENT) if b is not turn)
+    assert conv.turns_of(AGENT, "backchannel") and conv.turns_of(USER, "backchannel")
+
+
+def test_config_errors_name_the_option(tmp_path):
+    with pytest.raises(ConfigError, match="synthetic.family_weights"):
+        build_synth_config({"family_weights": [1.0, 0.0]})
+    with pytest.raises(ConfigError, match="synthetic.interruption_prob"):
+        build_synth_config({"interruption_prob": 1.5})
+    with pytest.raises(ConfigError, match="synthetic.colour"):
+        build_synth_config({"colour": 1})
+    path = tmp_path / "s.yaml"
+    path.write_text("synthetic:\n  gesture_prob: 0.5\n")
+    assert load_synth_config(path).gesture_prob == 0.5
+    assert synthetic_main(["--out", str(tmp_path / "x"), "--sessions", "0"]) == 2
+
+
+@needs_clip
+def test_stored_calibration_matches_the_real_clip():
+    from gesture.data.synth.calibration import calibrate, load_calibration
+
+    fresh, stored = calibrate(CLIP_NPZ), load_calibration()
+    for j, v in stored.base_local_aa.items():
+        np.testing.assert_allclose(fresh.base_local_aa[j], v, atol=1e-4)
+    np.testing.assert_allclose(fresh.relaxed_hand_aa, stored.relaxed_hand_aa, atol=1e-4)
+    np.testing.assert_allclose(fresh.wrist_chest_m, stored.wrist_chest_m, atol=1e-4)
