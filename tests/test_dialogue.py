@@ -128,6 +128,7 @@ def test_echo_of_the_agents_own_voice_does_not_barge_in(tmp_path):
     assert not any(s.agent_interrupted for s in gated)
 
 
+@pytest.mark.slow
 def test_the_user_can_still_barge_in_over_a_quieter_echo(tmp_path):
     speech = load_24k(LIBRIVOX)
     overlap_start = (len(speech) + int(2.3 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
