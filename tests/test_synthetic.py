@@ -120,7 +120,7 @@ def test_motion_is_smooth(session):
     step = np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1))  # (T-1, 55) rad per frame
     assert step.max() < 0.5  # the real BEAT2 clip peaks at 0.40 rad per frame (elbows, wrists)
     accel = np.linalg.norm(np.diff(session["joints"], 2, axis=0), axis=-1) * FPS**2  # (T-2, 55) m/s^2
-    assert np.percentile(accel, 99.9) < 25.0
+    assert np.percentile(accel, 99.9) < 40.0  # the real BEAT2 clip: 28.5 m/s^2 (max 42.7)
 
 
 def test_feet_planted_and_on_the_floor(session):
