@@ -63,14 +63,15 @@ def plot_history(history: dict, path: Path, region: str) -> None:
 class CodecTrainer:
     """Holds the codec, optimiser, schedule and history of one region's training run."""
 
-    def __init__(self, config: CodecFileConfig, region: str, data: Path, out: Path, skeleton: Skeleton) -> None:
-        self.config, self.region, self.out, self.skeleton = config, region, out, skeleton
+    def __init__(self, config: CodecFileConfig, region: str, data: Path, out: Path, skeleton: Skeleton,
+                 device: torch.device = torch.device("cpu")) -> None:
+        self.config, self.region, self.out, self.skeleton, self.device = config, region, out, skeleton, device
         train = config.train
         torch.manual_seed(train.seed)
         self.generator = torch.Generator().manual_seed(train.seed)
         self.train_data, self.heldout_data = load_motion_splits(data, train.holdout_seconds)
-        self.codec: GestureCodec = build_codec(config.codec, region)
-        self.loss = RegionLoss(region, skeleton)
+        self.codec: GestureCodec = build_codec(config.codec, region).to(device)
+        self.loss = RegionLoss(region, skeleton).to(device)
         self.optimizer = torch.optim.AdamW(self.codec.parameters(), lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
         self.step = 0
@@ -79,7 +80,7 @@ class CodecTrainer:
     def resume(self) -> None:
         from safetensors.torch import load_file
 
-        self.codec.load_state_dict(load_file(str(self.out / MODEL_FILE)), strict=True)
+        self.codec.load_state_dict(load_file(str(self.out / MODEL_FILE), device=str(self.device)), strict=True)
         state = load_optimizer(self.out, self.optimizer)
         self.step, self.history = state["step"], state["history"]
         self.scheduler.load_state_dict(state["scheduler"])
@@ -97,7 +98,7 @@ class CodecTrainer:
         train = self.config.train
         self.codec.train()
         batch = sample_batch(self.train_data, self.region, train.batch_size, train.window_frames,
-                             train.random_crop_rate, self.generator)  # (B, L, nfeats)
+                             train.random_crop_rate, self.generator).to(self.device)  # (B, L, nfeats)
         out = self.codec(batch)
         terms = self.loss(out.reconstruction, batch)
         weight = train.commitment_weight * commitment_ramp(self.step, train.commitment_ramp_steps)
@@ -144,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, help="checkpoint directory (default: runs/codec_<region>)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
     parser.add_argument("--smplx-model", type=Path, help="a real SMPL-X model file for the FK joints")
+    parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     try:
@@ -153,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     steps = args.steps or config.train.steps
     out = args.out or Path("runs") / f"codec_{args.region}"
     skeleton = Skeleton.from_smplx_model(args.smplx_model) if args.smplx_model else Skeleton.default()
-    trainer = CodecTrainer(config, args.region, args.data, out, skeleton)
+    trainer = CodecTrainer(config, args.region, args.data, out, skeleton, torch.device(args.device))
     if args.resume:
         if not (out / MODEL_FILE).is_file():
             parser.error(f"--resume: no checkpoint in {out}")

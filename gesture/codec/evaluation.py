@@ -26,7 +26,8 @@ def reconstruct(codec: GestureCodec, features: torch.Tensor) -> torch.Tensor:
     was_training = codec.training
     codec.eval()
     frames = features.shape[0] // codec.ratio * codec.ratio
-    out = codec.decode(codec.encode(features[None, :frames]))[0]
+    device = next(codec.parameters()).device
+    out = codec.decode(codec.encode(features[None, :frames].to(device)))[0].cpu()
     codec.train(was_training)
     return out
 
