@@ -4,7 +4,8 @@
 
 For each GL platform (OSMesa, EGL; each in its own process, as PyOpenGL binds one platform per process) and
 frame size (256², 512², 1280x720) it times the in-place vertex-buffer path next to the naive path that builds
-a new pyrender Mesh every frame, on the same BEAT2 poses in the same run. Then it renders the BEAT2 clip to
+a new pyrender Mesh every frame (and, on EGL, pyrender's default 4x MSAA), on the same BEAT2 poses in the
+same run, alternating frame by frame; `cpu_median_ms` is the process CPU time per frame (all threads). Then it renders the BEAT2 clip to
 an MP4 at 512² (OSMesa) and reports the real-time factor. The machine is shared and timings are noisy:
 compare the paths within one run, and read `load_avg`.
 """
@@ -40,10 +41,13 @@ def _motion(n_frames: int):
     return poses, trans, np.zeros((n_frames, 100), np.float32)
 
 
-def _stats(times_s: list[float]) -> dict:
+def _stats(times_s: list[float], cpu_s: list[float] | None = None) -> dict:
     ms = 1000 * np.asarray(times_s)
-    return {"median_ms": round(float(np.median(ms)), 2), "p95_ms": round(float(np.percentile(ms, 95)), 2),
-            "n": len(ms)}
+    out = {"median_ms": round(float(np.median(ms)), 2), "p95_ms": round(float(np.percentile(ms, 95)), 2),
+           "n": len(ms)}
+    if cpu_s is not None:  # CPU time of all this process's threads (llvmpipe's included): less load-dependent
+        out["cpu_median_ms"] = round(float(np.median(1000 * np.asarray(cpu_s))), 2)
+    return out
 
 
 def time_platform(platform: str, n_frames: int, warmup: int = 5) -> dict:
@@ -57,20 +61,23 @@ def time_platform(platform: str, n_frames: int, warmup: int = 5) -> dict:
     body = build_avatar()
     poses, trans, expressions = _motion(n_frames + warmup)
     out = {"vertices": body.n_vertices}
+    paths = PATHS + (("in_place_msaa4",) if platform == "egl" else ())
     for width, height in SIZES:
-        views = {path: AvatarView(body, width, height, platform=platform, in_place=path == "in_place")
-                 for path in PATHS}
-        times: dict[str, list[float]] = {path: [] for path in PATHS}
+        views = {path: AvatarView(body, width, height, platform=platform, in_place=path != "new_mesh",
+                                  msaa_samples=4 if path.endswith("msaa4") else 0) for path in paths}
+        times: dict[str, list[float]] = {path: [] for path in paths}
+        cpu: dict[str, list[float]] = {path: [] for path in paths}
         for i in range(n_frames + warmup):  # the paths alternate frame by frame, so they share the machine's load
             for path, view in views.items():
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 image = view.frame(poses[i], trans[i], expressions[i])  # pose, LBS, upload, render, readback
                 if i >= warmup:
                     times[path].append(time.perf_counter() - t0)
+                    cpu[path].append(time.process_time() - c0)
                 assert image.shape == (height, width, 3)
         for view in views.values():
             view.close()
-        out[f"{width}x{height}"] = {path: _stats(t) for path, t in times.items()}
+        out[f"{width}x{height}"] = {path: _stats(times[path], cpu[path]) for path in paths}
     return out
 
 
