@@ -15,6 +15,7 @@ so this puts the feet near the floor.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Literal, Mapping, Optional
 
@@ -27,6 +28,7 @@ from gesture.codec.streaming import StreamingDecoder
 from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
 from gesture.lm.naive import NaiveStepper
+from gesture.lm.packed import pack_linears, packing_available
 from gesture.lm.sampling import guide, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
 from gesture.regions import LOWER_VELOCITY_SLICE, features_to_motion
@@ -45,7 +47,9 @@ class GeneratedStep:
 
 
 class GestureGenerator:
-    """See the module docstring. `engine="naive"` swaps in the cache-free baseline (benchmark only)."""
+    """See the module docstring. `dtype` is the weight type of the step path: bfloat16 prepacks the LM's and the
+    codec decoder transformers' matrices (on a copy of each codec). `engine="naive"` swaps in the cache-free
+    baseline (benchmark only)."""
 
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
@@ -62,7 +66,7 @@ class GestureGenerator:
         lm = lm.eval()
         self.engine = LMStepper(lm, guided, dtype) if engine == "cached" else NaiveStepper(lm, guided)
         self.engine.set_speaker(speaker)
-        self.decoders = {name: StreamingDecoder(codecs[name].eval()) for name in REGIONS}
+        self.decoders = {name: StreamingDecoder(_inference_codec(codecs[name], dtype)) for name in REGIONS}
         self.unguided = set(self.sizes.lower_levels)
         self.idle_gate = idle_gate
         self.initial_translation = np.asarray(initial_translation, np.float64)
@@ -149,6 +153,16 @@ class GestureGenerator:
         last_velocity = features["lower"][FRAMES_PER_STEP - 1, LOWER_VELOCITY_SLICE]
         self.carry = trans[-1].astype(np.float64) + last_velocity / MOTION_FPS
         return poses, trans, expressions
+
+
+def _inference_codec(codec: GestureCodec, dtype: torch.dtype) -> GestureCodec:
+    """The codec as decoded here: with bfloat16, a copy whose decoder transformer has prepacked bf16 weights."""
+    codec = codec.eval()
+    if dtype != torch.bfloat16 or not packing_available():
+        return codec
+    codec = copy.deepcopy(codec)
+    pack_linears(codec.transformer_decoder)
+    return codec
 
 
 def _level_slices(lm: GestureLM) -> dict[str, slice]:

@@ -175,3 +175,17 @@ def test_soak_memory_stays_flat():
     print(f"soak: {steps} steps, RSS MB first {samples[0]:.1f}, after warm-up {warm:.1f}, last {samples[-1]:.1f}, "
           f"max {max(samples):.1f}")
     assert max(samples[len(samples) // 10:]) - warm < 20, samples
+
+
+def test_bfloat16_step_path_decodes_close_to_float32():
+    lm, codecs = tiny_lm(), tiny_codecs()
+    first = GestureGenerator(lm, codecs)
+    tokens = torch.from_numpy(first.step(1, np.arange(8)).tokens.astype(np.int64))
+    first.close()  # the codecs stream for one generator at a time
+    fast = GestureGenerator(lm, codecs, dtype=torch.bfloat16)
+    exact = GestureGenerator(lm, codecs, dtype=torch.float32)
+    assert type(codecs["upper"].transformer_decoder.transformer.layers[0].linear1) is torch.nn.Linear  # not mutated
+    for _ in range(3):
+        a, b = fast._decode(tokens), exact._decode(tokens)
+        for x, y in zip(a, b):
+            assert np.abs(x - y).max() < 0.02 * max(1.0, np.abs(y).max())

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from gesture.lm.embeddings import table_index
 from gesture.lm.layers import LAYER_NORM_EPS, DepthLayer, TemporalLayer
 from gesture.lm.model import GestureLM
+from gesture.lm.packed import linear, pack_weight
 from gesture.nn.attention import attention_mask
 from gesture.nn.kv_cache import RingKVCache
 from gesture.nn.rope import apply_rope
@@ -34,35 +35,9 @@ from gesture.nn.streaming import StreamingState
 F32 = torch.float32
 
 
-class PackedWeight:
-    """A bfloat16 weight prepacked once by oneDNN for small-batch products (2.5-4x faster than float32 here)."""
-
-    def __init__(self, weight: torch.Tensor, batch: int) -> None:
-        self.tensor = torch.ops.mkldnn._reorder_linear_weight(weight.to(torch.bfloat16).contiguous(), batch)
-
-
-def pack_weight(weight: torch.Tensor, dtype: torch.dtype, batch: int):
-    """`weight` as the step path stores it: float32 as is, bfloat16 prepacked when oneDNN is available."""
-    weight = weight.detach()
-    if dtype == F32:
-        return weight.contiguous()
-    if dtype == torch.bfloat16 and torch.backends.mkldnn.is_available():
-        return PackedWeight(weight, batch)
-    return weight.to(dtype).contiguous()
-
-
-def _lin(x: torch.Tensor, w) -> torch.Tensor:
-    """x (N, in) float32 @ w (out, in) -> (N, out) float32."""
-    if isinstance(w, PackedWeight):
-        return torch.ops.mkldnn._linear_pointwise(x.to(torch.bfloat16), w.tensor, None, "none", [], "").to(F32)
-    if w.dtype == F32:
-        return F.linear(x, w)
-    return F.linear(x.to(w.dtype), w).to(F32)
-
-
 def _ffn(x: torch.Tensor, w_in: torch.Tensor, w_out: torch.Tensor) -> torch.Tensor:
-    gate, value = _lin(x, w_in).chunk(2, dim=-1)
-    return _lin(F.silu(gate) * value, w_out)
+    gate, value = linear(x, w_in).chunk(2, dim=-1)
+    return linear(F.silu(gate) * value, w_out)
 
 
 def _rotate(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
@@ -302,10 +277,10 @@ class LMStepper:
         h = self._temporal(x, memories[:, :d], st.step)  # (B, d) before out_norm
         self.temporal_out = h
         normed = _norm(h, self.out_norm)
-        st.depth_z.copy_(_lin(normed, self.depth_in).view(self.batch, -1, d) + self.spk_depth)  # (B, S, d)
+        st.depth_z.copy_(linear(normed, self.depth_in).view(self.batch, -1, d) + self.spk_depth)  # (B, S, d)
         self._depth_cross(memories[:, d:])
         st.step += 1
-        return _lin(normed, self.classifier0)
+        return linear(normed, self.classifier0)
 
     def _temporal(self, x: torch.Tensor, memories: torch.Tensor, t: int) -> torch.Tensor:
         s, st = self.sizes, self.state
@@ -314,20 +289,20 @@ class LMStepper:
         rope = (angles.cos(), angles.sin())
         position = torch.tensor([t])
         masks: dict = {}
-        kv = {name: _lin(memories[i:i + 1], self.memory_kv[name]).view(s.temporal_layers, 2, heads, 1, -1)
+        kv = {name: linear(memories[i:i + 1], self.memory_kv[name]).view(s.temporal_layers, 2, heads, 1, -1)
               for i, name in enumerate(("audio", "text"))}  # (L, 2, H, 1, Dh)
         for i, w in enumerate(self.temporal):
-            qkv = _lin(_norm(x, w.norm1), w.qkv).view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh)
+            qkv = linear(_norm(x, w.norm1), w.qkv).view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh)
             q, k = _rotate(qkv[:, 0], *rope), _rotate(qkv[:, 1], *rope)
             keys, values, k_pos = st.self_caches[i].append(k, qkv[:, 2])
             if "self" not in masks:  # every layer's ring holds the same positions
                 masks["self"] = attention_mask(position, k_pos, s.self_context_steps)
-            x = x + _lin(_attend(q, keys, values, masks["self"]), w.out)
+            x = x + linear(_attend(q, keys, values, masks["self"]), w.out)
             audio_query = _norm(x[:1], w.norm3[0])
             text_query = _norm(audio_query, w.norm3[1])
-            audio = self._cross(st.audio_caches[i], _lin(audio_query, w.q_audio), kv["audio"][i], rope, masks)
-            text = self._cross(st.text_caches[i], _lin(text_query, w.q_text), kv["text"][i], rope, masks)
-            mixed = F.silu(_lin(torch.cat([audio, text], dim=-1), w.mix) + w.mix_bias)  # (1, d)
+            audio = self._cross(st.audio_caches[i], linear(audio_query, w.q_audio), kv["audio"][i], rope, masks)
+            text = self._cross(st.text_caches[i], linear(text_query, w.q_text), kv["text"][i], rope, masks)
+            mixed = F.silu(linear(torch.cat([audio, text], dim=-1), w.mix) + w.mix_bias)  # (1, d)
             ca = _ffn(mixed, w.ca_in, w.ca_out)
             x = x + (torch.cat([ca, w.null_ca[None]]) if self.batch == 2 else ca)
             x = x + _ffn(_norm(x, w.norm2), w.ffn_in, w.ffn_out)
@@ -346,7 +321,7 @@ class LMStepper:
         """Row-0 cross-attention block outputs of every depth layer and position (others are constants)."""
         st, d = self.state, self.sizes.d_model
         n_open = len(self.open_positions)
-        pre = _lin(memories.reshape(1, 2 * d), self.depth_fold).view(len(self.depth), n_open, d)
+        pre = linear(memories.reshape(1, 2 * d), self.depth_fold).view(len(self.depth), n_open, d)
         for i, w in enumerate(self.depth):
             st.depth_ca[i].copy_(w.const_ca)
             for j, s in enumerate(self.open_positions):
@@ -359,17 +334,17 @@ class LMStepper:
         row = self.depth_gesture_table[k * self.row_stride + (token if token >= 0 else self.row_stride - 1)]
         z = st.depth_z[:, k] + row  # (B, d)
         for i, w in enumerate(self.depth):
-            qkv = _lin(_norm(z, w.norm1), w.qkv[k]).view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh), RoPE'd
+            qkv = linear(_norm(z, w.norm1), w.qkv[k]).view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh), RoPE'd
             q = qkv[:, 0]
             st.depth_keys[i, :, :, k] = qkv[:, 1, :, 0]
             st.depth_values[i, :, :, k] = qkv[:, 2, :, 0]
             keys, values = st.depth_keys[i, :, :, :k + 1], st.depth_values[i, :, :, :k + 1]  # (B, H, k+1, Dh)
             weights = torch.softmax((q @ keys.transpose(-1, -2)) * q.shape[-1] ** -0.5, dim=-1)
-            z = z + _lin((weights @ values).flatten(1), w.out[k])
+            z = z + linear((weights @ values).flatten(1), w.out[k])
             ca = st.depth_ca[i, k]
             z = z + (torch.stack([ca, w.const_ca[k]]) if self.batch == 2 else ca)
             z = z + _ffn(_norm(z, w.norm2), w.ffn_in[k], w.ffn_out[k])
-        return _lin(z, self.classifiers[k])
+        return linear(z, self.classifiers[k])
 
     def va_logit(self, face_logits: torch.Tensor | None = None) -> float:
         """Voice-activity logit of row 0 for the current step; face_logits (n_face, card+1) if the head uses them."""
