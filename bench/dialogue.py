@@ -80,8 +80,6 @@ def run(beat2_s: float, pause_s: float) -> dict:
                        (backend.user_codes, "codes")):
         _timed(obj, "step", label, parts)
     pcm = conversation(beat2_s, pause_s)
-    backend.step(np.zeros(STEP_SAMPLES, np.float32))  # warm-up outside the measurement
-    backend.reset()
     rng = np.random.default_rng(0)
     step_ms, part_ms, base_ms = [], {}, []
     for i in range(0, len(pcm), STEP_SAMPLES):

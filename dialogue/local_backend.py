@@ -61,8 +61,17 @@ class LocalBackend:
         responder = build_responder(r.kind, seed, url=r.url, model=r.model, timeout_s=r.timeout_s,
                                     max_tokens=r.max_tokens, system_prompt=r.system_prompt,
                                     fallback_text=r.fallback_text, api_key_env=r.api_key_env)
-        return cls(UserListener(cfg.vad, cfg.echo, cfg.asr), EspeakTts(cfg.tts.voice, cfg.tts.rate_wpm, cfg.tts.pitch),
-                   responder, load_speech_tokenizer(cfg.speech_tokenizer), cfg.barge_in_s)
+        tts = EspeakTts(cfg.tts.voice, cfg.tts.rate_wpm, cfg.tts.pitch)
+        tts.synthesize("Hello.")  # loads the voice now, and fails early on a bad one
+        backend = cls(UserListener(cfg.vad, cfg.echo, cfg.asr), tts, responder,
+                      load_speech_tokenizer(cfg.speech_tokenizer), cfg.barge_in_s)
+        backend.warm_up()
+        return backend
+
+    def warm_up(self) -> None:
+        """One silent step (first ONNX / torch / decoder calls are slow), then a clean state."""
+        self.step(np.zeros(STEP_SAMPLES, np.float32))
+        self.reset()
 
     def reset(self) -> None:
         self.listener.reset()

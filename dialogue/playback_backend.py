@@ -11,7 +11,7 @@ import numpy as np
 
 from agent.io.audio_file import load_audio
 from agent.messages import DialogueStep
-from agent.timing import SAMPLE_RATE_HZ
+from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.alignment import recognize, words_from_transcript
 from dialogue.config import DialogueConfig
 from dialogue.listener import STEP_S, UserListener
@@ -48,8 +48,11 @@ class PlaybackBackend:
     @classmethod
     def from_config(cls, cfg: DialogueConfig, seed: int = 0) -> "PlaybackBackend":
         p = cfg.playback
-        return cls(recording_utterance(p.speak, p.transcript), UserListener(cfg.vad, cfg.echo, cfg.asr),
-                   load_speech_tokenizer(cfg.speech_tokenizer), p.start_s)
+        backend = cls(recording_utterance(p.speak, p.transcript), UserListener(cfg.vad, cfg.echo, cfg.asr),
+                      load_speech_tokenizer(cfg.speech_tokenizer), p.start_s)
+        backend.step(np.zeros(STEP_SAMPLES, np.float32))  # warm-up: the first calls of each model are slow
+        backend.reset()
+        return backend
 
     def reset(self) -> None:
         for part in (self.listener, self.speaker, self.agent_codes, self.user_codes):
