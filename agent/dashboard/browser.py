@@ -64,6 +64,8 @@ class HeadlessChromium:
         try:
             port = await self._devtools_port()
             self.ws = await self.session.ws_connect(await self._page_socket(port), max_msg_size=0)
+            await self.call("Emulation.setDeviceMetricsOverride", width=self.width, height=self.height,
+                            deviceScaleFactor=1, mobile=False)
         except BaseException:
             await self.__aexit__(None, None, None)
             raise

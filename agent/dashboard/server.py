@@ -1,8 +1,8 @@
 """The dashboard's web server (aiohttp): the page, its static assets, a state snapshot and one WebSocket per page.
 
 The WebSocket pushes JSON events (text messages) and frames / agent audio (binary messages, see
-`events.pack_binary`). Every page has its own sender: when a page falls behind, only the newest frame waits
-for it (older ones are skipped and counted), so a slow browser never holds up the bus or other pages.
+`events.pack_binary`). Every page has its own sender: when a page falls behind, only its newest few frames wait
+(older ones are skipped and counted), so a slow browser never holds up the bus or other pages.
 A page sends `{"type": "control", "command": "start" | "stop"}` and `{"type": "audio", "enabled": bool}`.
 """
 
@@ -13,7 +13,7 @@ import collections
 import json
 import logging
 from pathlib import Path
-from typing import Callable, Iterable, Optional
+from typing import Callable, Iterable
 from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
 MAX_PENDING_EVENTS = 2000  # a page this far behind is disconnected; it reconnects and gets a snapshot
 MAX_PENDING_AUDIO = 25  # steps of agent audio (2 s)
+MAX_PENDING_FRAMES = 4  # the render stage publishes a step's two frames together
 COMMANDS = ("start", "stop")
 
 
@@ -35,7 +36,7 @@ class Page:
         self.ws = ws
         self.events: collections.deque[str] = collections.deque()
         self.audio: collections.deque[bytes] = collections.deque(maxlen=MAX_PENDING_AUDIO)
-        self.frame: Optional[bytes] = None
+        self.frames: collections.deque[bytes] = collections.deque()
         self.wants_audio = False
         self.skipped_frames = 0
         self.wake = asyncio.Event()
@@ -48,9 +49,10 @@ class Page:
         self.wake.set()
 
     def push_frame(self, data: bytes) -> None:
-        if self.frame is not None:
+        if len(self.frames) >= MAX_PENDING_FRAMES:
+            self.frames.popleft()
             self.skipped_frames += 1
-        self.frame = data
+        self.frames.append(data)
         self.wake.set()
 
     def push_audio(self, data: bytes) -> None:
@@ -66,9 +68,8 @@ class Page:
                 await self.ws.send_str(self.events.popleft())
             while self.audio:
                 await self.ws.send_bytes(self.audio.popleft())
-            if self.frame is not None:
-                frame, self.frame = self.frame, None
-                await self.ws.send_bytes(frame)
+            while self.frames:
+                await self.ws.send_bytes(self.frames.popleft())
 
 
 class Hub:

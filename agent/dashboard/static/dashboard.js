@@ -10,7 +10,7 @@ const TURN_COLORS = {user: "#4c9be8", agent: "#5cb85c", overlap: "#e8a23c", none
 
 // Read by the tests and handy in the console.
 const dash = window.dashboard = {
-  frames: 0, lastFrameStep: -1, latencySamples: 0, chartDraws: 0, chartLastStep: -1, words: 0,
+  frames: 0, framesSkipped: 0, lastFrameStep: -1, latencySamples: 0, chartDraws: 0, chartLastStep: -1, words: 0,
   phase: "connecting", pipeline: [], audioSteps: 0,
 };
 
@@ -81,25 +81,36 @@ $("sound").onchange = (ev) => {
 };
 
 // ---- video ----------------------------------------------------------------------------------------------
-let decoding = false, nextFrame = null;
+// Frames are decoded in order and shown at the render rate: the render stage publishes a step's two frames
+// together, so the second one waits a frame period. A backlog beyond a few frames is skipped to stay live.
+const FRAME_MS = 1000 * STEP_S / 2;
+const MAX_QUEUED_FRAMES = 4;
+const frameQueue = [];  // [bitmap, step, index], decoded, oldest first
+let decodes = Promise.resolve(), pendingDecodes = 0, lastShownMs = 0;
 
 function onFrame(step, index, blob) {
-  if (decoding) { nextFrame = [step, index, blob]; return; }  // keep only the newest while one decodes
-  decoding = true;
-  createImageBitmap(blob).then((bitmap) => {
-    const canvas = $("video");
-    if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
-      canvas.width = bitmap.width; canvas.height = bitmap.height;
-    }
-    canvas.getContext("2d").drawImage(bitmap, 0, 0);
-    bitmap.close();
-    dash.frames += 1; dash.lastFrameStep = step;
-    $("frameinfo").textContent = `step ${step} · frame ${index} · t = ${(step * STEP_S).toFixed(2)} s`;
-    playAudioUpTo(step);
-  }).catch(() => {}).finally(() => {
-    decoding = false;
-    if (nextFrame) { const f = nextFrame; nextFrame = null; onFrame(...f); }
-  });
+  if (pendingDecodes >= MAX_QUEUED_FRAMES) { dash.framesSkipped += 1; return; }
+  pendingDecodes += 1;
+  decodes = decodes.then(() => createImageBitmap(blob)).then((bitmap) => {
+    frameQueue.push([bitmap, step, index]);
+    while (frameQueue.length > MAX_QUEUED_FRAMES) { frameQueue.shift()[0].close(); dash.framesSkipped += 1; }
+  }).catch(() => {}).finally(() => { pendingDecodes -= 1; });
+}
+
+function showFrames() {
+  const now = performance.now();
+  if (!frameQueue.length || (now - lastShownMs < 0.9 * FRAME_MS && frameQueue.length < 3)) return;
+  const [bitmap, step, index] = frameQueue.shift();
+  lastShownMs = now;
+  const canvas = $("video");
+  if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
+    canvas.width = bitmap.width; canvas.height = bitmap.height;
+  }
+  canvas.getContext("2d").drawImage(bitmap, 0, 0);
+  bitmap.close();
+  dash.frames += 1; dash.lastFrameStep = step;
+  $("frameinfo").textContent = `step ${step} · frame ${index} · t = ${(step * STEP_S).toFixed(2)} s`;
+  playAudioUpTo(step);
 }
 
 // ---- the agent's voice, synced to the video by step ------------------------------------------------------
@@ -250,9 +261,10 @@ function renderStageStates(states) { stageStates = states || stageStates; }
 function onCounters(e) {
   renderStageStates(e.states);
   const rows = Object.entries(e.stages).map(([name, c]) => [name, stageStates[name] || "", c]);
-  rows.push(["dashboard", `${e.dashboard.pages || 0} page(s)`, {handled: e.dashboard.received_frames,
-    dropped: (e.dashboard.dropped || 0) + (e.dashboard.skipped_frames || 0), lost: e.dashboard.lost,
-    decode_errors: e.dashboard.decode_errors}]);
+  const own = e.dashboard;
+  rows.push(["dashboard", `${own.pages || 0} page(s)`, {handled: own.received_frames, dropped: own.dropped,
+    lost: own.lost, dropped_frames: own.skipped_frames,
+    decode_errors: (own.decode_errors || 0) + (own.bad_frames || 0)}]);
   $("counters").tBodies[0].innerHTML = rows.map(([name, state, c]) => {
     const errors = (c.decode_errors || 0) + (c.handler_errors || 0);
     const cell = (v) => `<td${v ? ' class="bad"' : ""}>${v || 0}</td>`;
@@ -262,6 +274,7 @@ function onCounters(e) {
 }
 
 // ---- main -----------------------------------------------------------------------------------------------
+setInterval(showFrames, 5);
 setInterval(() => {
   if (chartDirty) { chartDirty = false; drawChart(); }
   if (stripDirty) { stripDirty = false; drawStrip(); }
