@@ -97,8 +97,7 @@ class LocalBackend:
         heard = self.listener.step(user_pcm, self._last_agent_pcm)
         user_words = self._take_user_turn(heard)
         self._pull_reply()
-        spoken = self.speaker.step(t_s)
-        interrupted = self._maybe_barge_in(heard, spoken, t_s)
+        spoken = self._barge_in(t_s) if self._user_takes_the_turn(heard) else self.speaker.step(t_s)
         if spoken.first_audio and self._awaiting_answer_since_s is not None:
             ready_s = (self._step_index + 1) * STEP_S + (time.process_time() - t_cpu)
             self.response_latencies_s.append(ready_s - self._awaiting_answer_since_s)
@@ -109,7 +108,7 @@ class LocalBackend:
             agent_pcm=spoken.pcm, user_pcm=user_pcm, agent_codes=self.agent_codes.step(spoken.pcm),
             user_codes=self.user_codes.step(user_pcm), text_token=spoken.text_token, text_piece=spoken.text_piece,
             user_vad_prob=heard.vad_prob, user_vad_state=heard.vad_state, agent_speaking=spoken.speaking,
-            user_partial=heard.partial, user_words=user_words, agent_interrupted=interrupted)
+            user_partial=heard.partial, user_words=user_words, agent_interrupted=spoken.interrupted)
 
     def _take_user_turn(self, heard: Heard) -> str:
         """Record a finished user turn; answer it unless it was a short overlap with the agent talking."""
@@ -134,18 +133,16 @@ class LocalBackend:
             self.speaker.end_reply()
             self._reply = None
 
-    def _maybe_barge_in(self, heard: Heard, spoken: SpokenStep, t_s: float) -> bool:
-        """User speech over the agent for barge_in_s: cut this very step (short fade) and drop the reply."""
-        if not self.speaker.busy and not spoken.speaking:
-            return False
-        if heard.vad_state not in (VadState.STARTING, VadState.SPEAKING) or heard.speech_run_s < self.barge_in_s:
-            return False
+    def _user_takes_the_turn(self, heard: Heard) -> bool:
+        """User speech for barge_in_s while a reply is playing or pending."""
+        return (self.speaker.busy and heard.vad_state in (VadState.STARTING, VadState.SPEAKING)
+                and heard.speech_run_s >= self.barge_in_s)
+
+    def _barge_in(self, t_s: float) -> SpokenStep:
+        """Stop the agent at this step, drop its reply, and answer the user's turn when it ends."""
         if self._reply is not None:
             self._reply.cancel()
             self._reply = None
-        cut = self.speaker.interrupt(t_s)
-        spoken.pcm = self.speaker.fade_out(spoken.pcm)
-        spoken.speaking = False
         self._barged_in = True
         self._awaiting_answer_since_s = None
-        return cut
+        return self.speaker.cut(t_s)

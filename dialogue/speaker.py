@@ -100,24 +100,22 @@ class Speaker:
             self._finish_turn()
         return SpokenStep(chunk, self._token_of(piece) if piece else -1, piece, speaking, first_audio=first_audio)
 
-    def interrupt(self, t_s: float) -> bool:
-        """Cut the reply now (stream time t_s); returns whether anything was cut."""
-        if self._turn is None and not self._texts:
-            self.reset()
-            return False
-        if self._turn is not None:
+    def cut(self, t_s: float) -> SpokenStep:
+        """Barge-in: stop at the start of this step (a 5 ms fade of what would have played), drop the reply.
+
+        The agent turn is marked interrupted at the last word that had started; returns the step to play.
+        """
+        pcm = np.zeros(STEP_SAMPLES, np.float32)
+        n = min(FADE_SAMPLES, self._buf.size)
+        pcm[:n] = self._buf[:n] * np.linspace(1.0, 0.0, FADE_SAMPLES, dtype=np.float32)[:n]
+        had_turn = self._turn is not None
+        if had_turn:
             self._turn.interrupted = True
             self._turn.interrupted_at_word = len(self._turn.words) - 1 if self._turn.words else None
             self._close_last_word(t_s)
             self._turn.end_s = t_s
         self.reset()
-        return True
-
-    def fade_out(self, pcm: np.ndarray) -> np.ndarray:
-        """A step's audio with a short fade to silence at its start, for the step where the reply is cut."""
-        out = np.zeros_like(pcm)
-        out[:FADE_SAMPLES] = pcm[:FADE_SAMPLES] * np.linspace(1.0, 0.0, FADE_SAMPLES, dtype=np.float32)
-        return out
+        return SpokenStep(pcm, -1, "", speaking=False, interrupted=had_turn)
 
     def _add_reply_text(self, text: str) -> None:
         self._reply_text.append(text)
