@@ -1,11 +1,12 @@
 """Offscreen pyrender renderer of one deforming mesh, with its vertex buffer updated in place each frame.
 
 The mesh (faces, per-vertex colours) is uploaded once. Every frame only the interleaved
-[position | normal | colour] vertex buffer is rewritten with `glBufferSubData`, which is what pyrender
-itself uploads in `Primitive._add_to_context`; building a new `pyrender.Mesh` per frame (the naive path,
-kept for the benchmark) re-creates the VAO and all buffers and is about twice as slow on llvmpipe.
+[position | normal | colour] vertex buffer is rewritten with `glBufferSubData`, the buffer pyrender itself
+fills in `Primitive._add_to_context`. The naive path (`in_place=False`, kept for the benchmark) builds a new
+`pyrender.Mesh` per frame, which re-creates the VAO and all buffers (10-20 % slower here, see bench.render).
 
-pyrender is imported only after `render.gl.select_platform` has set PYOPENGL_PLATFORM.
+pyrender is imported only after `render.gl.select_platform` has set PYOPENGL_PLATFORM. Our shaders
+(render/shaders) and shader cache replace pyrender's (see `_program_cache`).
 """
 
 from __future__ import annotations

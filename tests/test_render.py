@@ -97,3 +97,19 @@ def test_egl_platform_renders_or_is_reported_unavailable():
     if "EGL-OK" not in done.stdout:
         pytest.skip(f"EGL is not usable here: {done.stderr.strip().splitlines()[-1:]}")
     assert "EGL-OK (64, 64, 3) 1" in done.stdout
+
+
+def test_render_config_errors_name_the_option():
+    from agent.config import ConfigError, build_dataclass
+    from render.config import RenderConfig
+
+    with pytest.raises(ConfigError, match=r"^render\.size: must be an even"):
+        build_dataclass(RenderConfig, {"size": 511}, "render")
+    with pytest.raises(ConfigError, match=r"^render\.camera: must be one of"):
+        build_dataclass(RenderConfig, {"camera": "side"}, "render")
+    with pytest.raises(ConfigError, match=r"^render\.zoom: unknown option"):
+        build_dataclass(RenderConfig, {"zoom": 2}, "render")
+    with pytest.raises(ConfigError, match=r"^render\.width: width and height"):
+        build_dataclass(RenderConfig, {"width": 1280}, "render")
+    cfg = build_dataclass(RenderConfig, {"width": 1280, "height": 720, "mp4_audio": "stereo"}, "render")
+    assert cfg.frame_size(live=True) == (1280, 720) and RenderConfig().frame_size(live=True) == (384, 384)
