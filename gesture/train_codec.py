@@ -3,6 +3,7 @@
     python -m gesture.train_codec --config configs/codec/small.yaml --region upper \
         [--data ../shared/data/beat2/2_scott_0_1_1.npz] [--steps N] [--out DIR] [--resume]
 
+Runs unchanged under torchrun (DDP: gloo on CPU, nccl on GPU; each rank draws its own batches).
 Writes DIR/model.safetensors + config.yaml (loadable by gesture.codec.checkpoint.load_codec),
 optimizer.safetensors + trainer_state.json (for --resume), and loss_curve.png. Evaluation (MPJPE in
 mm, or the jaw error for the face) runs on the training and held-out data at every checkpoint.
@@ -19,6 +20,8 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import torch  # noqa: E402
+import torch.distributed as dist  # noqa: E402
+from torch.nn.parallel import DistributedDataParallel as DDP  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from agent.config import ConfigError  # noqa: E402
@@ -67,10 +70,13 @@ class CodecTrainer:
                  device: torch.device = torch.device("cpu")) -> None:
         self.config, self.region, self.out, self.skeleton, self.device = config, region, out, skeleton, device
         train = config.train
-        torch.manual_seed(train.seed)
-        self.generator = torch.Generator().manual_seed(train.seed)
+        self.rank = dist.get_rank() if dist.is_initialized() else 0
+        torch.manual_seed(train.seed)  # same weights on every rank
+        self.generator = torch.Generator().manual_seed(train.seed + self.rank)  # different batches per rank
         self.train_data, self.heldout_data = load_motion_splits(data, train.holdout_seconds)
         self.codec: GestureCodec = build_codec(config.codec, region).to(device)
+        # codebook buffers are kept in sync by the codebooks themselves (gesture.codec.quantizer)
+        self.model = DDP(self.codec, broadcast_buffers=False) if dist.is_initialized() else self.codec
         self.loss = RegionLoss(region, skeleton).to(device)
         self.optimizer = torch.optim.AdamW(self.codec.parameters(), lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
@@ -84,7 +90,9 @@ class CodecTrainer:
         state = load_optimizer(self.out, self.optimizer)
         self.step, self.history = state["step"], state["history"]
         self.scheduler.load_state_dict(state["scheduler"])
-        self.generator.set_state(torch.tensor(state["generator"], dtype=torch.uint8))
+        self.generator.set_state(torch.tensor(state["generator"], dtype=torch.uint8))  # rank 0's stream
+        if self.rank:
+            self.generator.manual_seed(train_seed_at(self.config.train.seed + self.rank, self.step))
         torch.manual_seed(train_seed_at(self.config.train.seed, self.step))
 
     def evaluate(self) -> dict:
@@ -99,7 +107,7 @@ class CodecTrainer:
         self.codec.train()
         batch = sample_batch(self.train_data, self.region, train.batch_size, train.window_frames,
                              train.random_crop_rate, self.generator).to(self.device)  # (B, L, nfeats)
-        out = self.codec(batch)
+        out = self.model(batch)
         terms = self.loss(out.reconstruction, batch)
         weight = train.commitment_weight * commitment_ramp(self.step, train.commitment_ramp_steps)
         loss = terms["total"] + weight * out.commitment_loss
@@ -155,25 +163,49 @@ def main(argv: list[str] | None = None) -> int:
     steps = args.steps or config.train.steps
     out = args.out or Path("runs") / f"codec_{args.region}"
     skeleton = Skeleton.from_smplx_model(args.smplx_model) if args.smplx_model else Skeleton.default()
-    trainer = CodecTrainer(config, args.region, args.data, out, skeleton, torch.device(args.device))
-    if args.resume:
-        if not (out / MODEL_FILE).is_file():
-            parser.error(f"--resume: no checkpoint in {out}")
+    if args.resume and not (out / MODEL_FILE).is_file():
+        parser.error(f"--resume: no checkpoint in {out}")
+    device = _start_distributed(torch.device(args.device))
+    try:
+        trainer = CodecTrainer(config, args.region, args.data, out, skeleton, device)
+        _run(trainer, steps, args.resume)
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
+    if trainer.rank == 0:
+        final = trainer.history["eval"][-1]
+        print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final}, indent=1))
+    return 0
+
+
+def _start_distributed(device: torch.device) -> torch.device:
+    """Under torchrun (WORLD_SIZE > 1): join the process group; on GPU, one device per local rank."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return device
+    dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    if device.type == "cuda":
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+    return device
+
+
+def _run(trainer: CodecTrainer, steps: int, resume: bool) -> None:
+    """Train to `steps`; rank 0 evaluates, checkpoints and reports."""
+    lead = trainer.rank == 0
+    if resume:
         trainer.resume()
-    else:
+    elif lead:
         print(_summary(trainer.evaluate()), file=sys.stderr)
-    with tqdm(total=steps, initial=trainer.step, desc=f"codec {args.region}", dynamic_ncols=True) as bar:
+    every = trainer.config.train.checkpoint_every
+    with tqdm(total=steps, initial=trainer.step, desc=f"codec {trainer.region}", dynamic_ncols=True,
+              disable=not lead) as bar:
         while trainer.step < steps:
             loss = trainer.train_step()
             bar.update(1)
             bar.set_postfix(loss=f"{loss:.4f}")
-            if trainer.step % config.train.checkpoint_every == 0 or trainer.step == steps:
-                result = trainer.evaluate()
-                tqdm.write(_summary(result), file=sys.stderr)
+            if lead and (trainer.step % every == 0 or trainer.step == steps):
+                tqdm.write(_summary(trainer.evaluate()), file=sys.stderr)
                 trainer.save()
-    final = trainer.history["eval"][-1]
-    print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final}, indent=1))
-    return 0
 
 
 if __name__ == "__main__":

@@ -10,10 +10,27 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
 from torch import nn
 
 USAGE_EPS = 1e-5
+
+
+def _distributed() -> bool:
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
+def _sum_over_ranks_(*tensors: torch.Tensor) -> None:
+    if _distributed():
+        for tensor in tensors:
+            dist.all_reduce(tensor)
+
+
+def _copy_from_rank0_(*tensors: torch.Tensor) -> None:
+    if _distributed():
+        for tensor in tensors:
+            dist.broadcast(tensor, 0)
 
 
 def kmeans(vectors: torch.Tensor, num_clusters: int, iters: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -37,6 +54,9 @@ def nearest_code(vectors: torch.Tensor, codebook: torch.Tensor) -> torch.Tensor:
 
 
 class EuclideanCodebook(nn.Module):
+    """EMA codebook. Under torch.distributed, counts and sums are summed over ranks and rank 0's
+    k-means initialisation and dead-code replacements are broadcast, so every rank keeps the same codes."""
+
     def __init__(self, dim: int, codebook_size: int, decay: float, kmeans_iters: int,
                  dead_code_every_steps: int, dead_code_usage_ratio: float) -> None:
         super().__init__()
@@ -75,6 +95,7 @@ class EuclideanCodebook(nn.Module):
         """One EMA step on (N, Dq) vectors and their codes; every few steps, re-seed the dead codes."""
         counts = torch.bincount(codes, minlength=self.codebook_size).to(x.dtype)
         sums = torch.zeros_like(self.embedding_sum).index_add_(0, codes, x)
+        _sum_over_ranks_(counts, sums)
         self.cluster_usage.mul_(self.decay).add_(counts, alpha=1 - self.decay)
         self.embedding_sum.mul_(self.decay).add_(sums, alpha=1 - self.decay)
         self._updates_since_replacement += 1
@@ -92,6 +113,7 @@ class EuclideanCodebook(nn.Module):
             samples = x[torch.randint(len(x), (num_dead,), device=x.device)]
             self.cluster_usage[dead] = uniform_usage
             self.embedding_sum[dead] = samples * uniform_usage
+        _copy_from_rank0_(self.cluster_usage, self.embedding_sum)
         return num_dead
 
     @torch.no_grad()
@@ -100,6 +122,7 @@ class EuclideanCodebook(nn.Module):
         usage = counts.clamp(min=1.0)
         self.cluster_usage.copy_(usage)
         self.embedding_sum.copy_(centroids * usage[:, None])
+        _copy_from_rank0_(self.cluster_usage, self.embedding_sum)
         self._initialized.fill_(1.0)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -161,7 +184,9 @@ class ResidualVectorQuantizer(nn.Module):
         flat = x.transpose(1, 2).flatten(0, 1)  # (B*S, Dq)
         n_q = self.n_q
         if self.training and self.quantizer_dropout:
-            n_q = int(torch.randint(1, self.n_q + 1, ()))
+            drawn = torch.randint(1, self.n_q + 1, (1,), device=z.device)
+            _copy_from_rank0_(drawn)  # every rank must update the same codebooks
+            n_q = int(drawn)
         residual, quantized = flat, torch.zeros_like(flat)
         codes, commitments = [], []
         for codebook in self._codebooks()[:n_q]:
