@@ -41,6 +41,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     source = p.add_mutually_exclusive_group()
     source.add_argument("--mic", action="store_true", help="listen to the microphone (real time)")
     source.add_argument("--replay", metavar="FILE", help="replay a recording as the user's voice")
+    source.add_argument("--browser-mic", action="store_true",
+                        help="the dashboard page's microphone is the user's voice (real time)")
     p.add_argument("--speak", metavar="FILE", help="the agent speaks this recording (playback backend)")
     p.add_argument("--headless", action="store_true", help="no dashboard and no speaker")
     p.add_argument("--host", metavar="ADDR",
@@ -56,7 +58,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="YAML config (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one option, e.g. --set render.size=384 (repeatable)")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.browser_mic and args.headless:
+        p.error("--browser-mic needs the dashboard: drop --headless")
+    return args
 
 
 def mode_overrides(args: argparse.Namespace, speak_duration_s: float | None) -> list[str]:
@@ -66,6 +71,8 @@ def mode_overrides(args: argparse.Namespace, speak_duration_s: float | None) -> 
         out += ["io.source=mic"]
     elif args.replay:
         out += ["io.source=replay", f"io.replay_path={yaml.safe_dump(args.replay).strip()}"]
+    elif args.browser_mic:
+        out += ["io.source=silence", "run.components.io=agent.dashboard.mic:browser_io", "dashboard.browser_mic=true"]
     elif args.speak:
         out += ["io.source=silence", f"io.silence_s={speak_duration_s + 2.0:.2f}"]
     if args.speak:

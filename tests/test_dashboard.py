@@ -337,3 +337,40 @@ def test_real_dialogue_and_renderer_show_in_the_page(tmp_path):
     assert seen["agentWords"] >= 2
     assert seen["frames"] > 10 and seen["spread"] > 100  # the avatar on its backdrop, not a blank canvas
     assert seen["latencySamples"] > 5
+
+
+FAKE_MIC = ("--use-fake-ui-for-media-stream", "--use-fake-device-for-media-stream")
+
+
+@pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`)")
+@pytest.mark.skipif(not REAL_CLIP.exists(), reason=f"needs the shared recording {REAL_CLIP}")
+def test_the_pages_microphone_is_the_users_voice(tmp_path):
+    """--browser-mic: Chromium's fake microphone plays a real recording; the page sends it, the io stage
+    turns it into steps, and the user level the page shows comes back from the dialogue steps."""
+    report = tmp_path / "run"
+    proc = launch(["--browser-mic", "--set", "dashboard.port=0"], report)
+    flags = (*FAKE_MIC, f"--use-file-for-fake-audio-capture={REAL_CLIP}")
+
+    async def talk(url: str) -> dict:
+        async with HeadlessChromium(url, flags=flags) as page:
+            await page.wait_for("window.dashboard && !document.getElementById('mic').hidden", timeout_s=60)
+            silent = await page.wait_for("window.dashboard.frames > 2 && window.dashboard.userDbfs", timeout_s=30)
+            await page.evaluate("document.getElementById('mic').click()")
+            await page.wait_for("window.dashboard.micBlocks > 25", timeout_s=30)
+            loud = await page.wait_for("window.dashboard.userDbfs > -45 && window.dashboard.userDbfs", timeout_s=30)
+            counters = await page.evaluate("document.getElementById('micinfo').textContent")
+            await page.evaluate("document.getElementById('stop').click()")
+            return {"silent": silent, "loud": loud, "micinfo": counters}
+
+    try:
+        seen = asyncio.run(talk(_wait_for_file(report / "dashboard.url", proc).strip()))
+        code, output = finish(proc, timeout_s=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, output
+    assert seen["silent"] == -90.0  # before the microphone: the source delivers silence on time
+    assert seen["loud"] > -45 and seen["micinfo"] == ""
+    io_counters = json.loads((report / "latency.json").read_text())["counters"]["io"]
+    assert io_counters["mic_received_samples"] > 24_000  # more than a second of the page's audio
+    assert leftovers(proc.pid) == []

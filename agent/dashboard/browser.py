@@ -21,7 +21,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 import aiohttp
 
@@ -46,10 +46,12 @@ def find_chromium() -> Optional[str]:
 
 
 class HeadlessChromium:
-    """One headless Chromium with a fresh profile, showing `url` in a `width`×`height` window."""
+    """One headless Chromium with a fresh profile, showing `url` in a `width`×`height` window; `flags` are
+    added to the command line (e.g. Chromium's fake microphone for tests)."""
 
-    def __init__(self, url: str, width: int = 1280, height: int = 1000, binary: Optional[str] = None):
-        self.url, self.width, self.height = url, width, height
+    def __init__(self, url: str, width: int = 1280, height: int = 1000, binary: Optional[str] = None,
+                 flags: Sequence[str] = ()):
+        self.url, self.width, self.height, self.flags = url, width, height, tuple(flags)
         self.binary = binary or find_chromium()
         if self.binary is None:
             raise BrowserError(f"no Chromium found (looked for ${BROWSER_ENV} and {', '.join(BROWSER_NAMES)})")
@@ -58,8 +60,8 @@ class HeadlessChromium:
     async def __aenter__(self) -> "HeadlessChromium":
         self.profile = Path(tempfile.mkdtemp(prefix="dash-chromium-"))
         self.process = subprocess.Popen(
-            [self.binary, *FLAGS, f"--user-data-dir={self.profile}", f"--window-size={self.width},{self.height}",
-             self.url], stdout=subprocess.DEVNULL, stderr=open(self.profile / "stderr.log", "wb"))
+            [self.binary, *FLAGS, *self.flags, f"--user-data-dir={self.profile}",
+             f"--window-size={self.width},{self.height}", self.url], stdout=subprocess.DEVNULL, stderr=open(self.profile / "stderr.log", "wb"))
         self.session = aiohttp.ClientSession()
         try:
             port = await self._devtools_port()

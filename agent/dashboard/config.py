@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ipaddress
 from dataclasses import dataclass
+from typing import Optional
 
 from agent.config import ConfigError
 
@@ -16,6 +17,9 @@ class DashboardConfig:
 
     It listens on `host:port` (127.0.0.1 keeps it on this machine; port 0 takes any free port, written to
     `<run dir>/dashboard.url`). With `wait_for_start`, the run waits for the page's Start button.
+    `browser_mic` lets a page send its microphone as the user's audio (set by `launch.py --browser-mic`, which
+    also plugs the matching io source in). Browsers give a page the microphone only on https or localhost:
+    from another machine, give `tls_cert` and `tls_key` (PEM files) or forward the port over ssh.
     `jpeg_quality` encodes frames the render stage sends as raw RGB. `history_steps` is how many latency
     samples and `max_turns` how many transcript turns a newly opened page receives.
     """
@@ -24,6 +28,9 @@ class DashboardConfig:
     host: str = "127.0.0.1"
     port: int = 8998
     wait_for_start: bool = False
+    browser_mic: bool = False
+    tls_cert: Optional[str] = None
+    tls_key: Optional[str] = None
     jpeg_quality: int = 80
     history_steps: int = 250
     max_turns: int = 40
@@ -35,6 +42,8 @@ class DashboardConfig:
             raise ConfigError("dashboard.host: must not be empty (127.0.0.1 keeps the page on this machine)")
         if not 1 <= self.jpeg_quality <= 100:
             raise ConfigError(f"dashboard.jpeg_quality: must be in [1, 100], got {self.jpeg_quality}")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ConfigError("dashboard.tls_cert: tls_cert and tls_key must be given together")
         for name in ("history_steps", "max_turns"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"dashboard.{name}: must be >= 1, got {getattr(self, name)}")

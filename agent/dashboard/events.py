@@ -23,7 +23,7 @@ NS_PER_MS = 1e6
 MAX_WORDS_PER_TURN = 400  # a longer turn keeps its last words
 AGENT_GAP_STEPS = 10  # steps without agent speech or words that end an agent turn (0.8 s)
 BINARY_HEADER = struct.Struct("<BxHI")  # kind, (pad), frame index, step
-BINARY_FRAME, BINARY_AUDIO = 1, 2
+BINARY_FRAME, BINARY_AUDIO, BINARY_MIC = 1, 2, 3  # frame and agent audio to the page; microphone from it
 USER_TALKING = (VadState.STARTING, VadState.SPEAKING)
 
 Event = dict
@@ -151,8 +151,15 @@ def turn_state(msg: DialogueStep) -> str:
     return "user" if user else "agent" if msg.agent_speaking else "none"
 
 
+def level_dbfs(pcm: np.ndarray) -> float:
+    """RMS level of a block in dB full scale, floored at -90."""
+    rms = float(np.sqrt(np.mean(np.square(pcm, dtype=np.float64)))) if pcm.size else 0.0
+    return round(max(-90.0, 20 * np.log10(rms + 1e-12)), 1)
+
+
 def vad_event(msg: DialogueStep) -> Event:
     return {"type": "vad", "step": msg.step, "prob": round(float(msg.user_vad_prob), 3),
+            "user_dbfs": level_dbfs(msg.user_pcm),
             "state": msg.user_vad_state.value, "agent_speaking": bool(msg.agent_speaking),
             "interrupted": bool(msg.agent_interrupted), "turn": turn_state(msg)}
 
@@ -233,6 +240,6 @@ class RunState:
                 "states": dict(self.stage_states), "dashboard": own}
 
 
-def hello_event(pipeline: Sequence[str], live: bool, session: str) -> Event:
-    return {"type": "hello", "pipeline": list(pipeline), "live": live, "session": session,
+def hello_event(pipeline: Sequence[str], live: bool, session: str, browser_mic: bool) -> Event:
+    return {"type": "hello", "pipeline": list(pipeline), "live": live, "session": session, "browser_mic": browser_mic,
             "sample_rate_hz": SAMPLE_RATE_HZ, "frames_per_step": FRAMES_PER_STEP}

@@ -39,7 +39,8 @@ class DashboardProcess:
         launch = DashboardLaunch(app, run, ipc_dir)
         process = mp.get_context("spawn").Process(target=dashboard_main, args=(launch,), name=DASHBOARD)
         process.start()
-        shown = page_url(cfg.host, cfg.port) if cfg.port else f"see {run.run_dir / 'dashboard.url'}"
+        tls = cfg.tls_cert is not None
+        shown = page_url(cfg.host, cfg.port, tls) if cfg.port else f"see {run.run_dir / 'dashboard.url'}"
         log.info("dashboard: %s%s", shown, " (the run waits for its Start button)" if cfg.wait_for_start else "")
         return cls(process, stage_address(DASHBOARD, app.bus, ipc_dir), launch.log_path)
 

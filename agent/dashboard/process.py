@@ -23,6 +23,7 @@ from agent.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
 from agent.dashboard.events import (BINARY_AUDIO, BINARY_FRAME, LatencyMeter, RunState, Transcript, frame_jpeg,
                                     hello_event, pack_binary, pcm_int16, vad_event)
+from agent.dashboard.mic import MicRelay
 from agent.messages import Command, Control, DialogueStep, Message, Metrics, RenderFrame
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR, RunContext
@@ -67,18 +68,20 @@ class DashboardBridge:
         self.latency = LatencyMeter(self.pipeline, self.cfg.history_steps)
         self.run_state = RunState(self.pipeline, self.pipeline[-1], self.cfg.wait_for_start)
         self.clock = ClockSync()
+        self.mic = MicRelay(launch.run.run_dir) if self.cfg.browser_mic else None
         self.hub = None  # set by serve()
         self.stopping = False
         self.frames_in = 0
         self.bad_frames = 0
 
     def snapshot(self) -> list[dict]:
-        return [hello_event(self.pipeline, self.live, self.session), self.run_state.event(),
+        return [hello_event(self.pipeline, self.live, self.session, self.mic is not None), self.run_state.event(),
                 *self.transcript.snapshot(), *self.latency.snapshot(), self.counters_event()]
 
     def counters_event(self) -> dict:
         own = {"received_frames": self.frames_in, "dropped": self.sub.dropped, "lost": self.sub.lost,
                "decode_errors": self.sub.decode_errors, "bad_frames": self.bad_frames,
+               "mic_chunks": self.mic.chunks if self.mic else 0,
                **(self.hub.counters() if self.hub else {})}
         return self.run_state.counters_event(own)
 
@@ -135,18 +138,21 @@ class DashboardBridge:
     def close(self) -> None:
         self.pub.close()
         self.sub.close()
+        if self.mic is not None:
+            self.mic.close()
 
 
 async def serve(launch: DashboardLaunch) -> None:
     from agent.dashboard.server import Hub, make_app, start_server
 
     bridge = DashboardBridge(launch)
-    bridge.hub = Hub(bridge.snapshot, bridge.command)
+    bridge.hub = Hub(bridge.snapshot, bridge.command, bridge.mic.send if bridge.mic else None)
     loop = asyncio.get_running_loop()
     loop.add_signal_handler(signal.SIGTERM, lambda: setattr(bridge, "stopping", True))
     cfg = launch.app.dashboard
-    runner, port = await start_server(make_app(bridge.hub), cfg.host, cfg.port)
-    url = page_url(cfg.host, port)
+    tls = (cfg.tls_cert, cfg.tls_key) if cfg.tls_cert else None
+    runner, port = await start_server(make_app(bridge.hub), cfg.host, cfg.port, tls)
+    url = page_url(cfg.host, port, tls is not None)
     (launch.run.run_dir / URL_FILE).write_text(url + "\n")
     log.info("serving %s", url)
     next_beat = next_counters = 0.0
@@ -169,12 +175,12 @@ async def serve(launch: DashboardLaunch) -> None:
         bridge.close()
 
 
-def page_url(host: str, port: int) -> str:
+def page_url(host: str, port: int, tls: bool = False) -> str:
     """The address to open; a wildcard bind is opened through this machine's loopback."""
     shown = {"0.0.0.0": "127.0.0.1", "::": "[::1]", "": "127.0.0.1"}.get(host, host)
     if ":" in shown and not shown.startswith("["):
         shown = f"[{shown}]"
-    return f"http://{shown}:{port}/"
+    return f"{'https' if tls else 'http'}://{shown}:{port}/"
 
 
 def dashboard_main(launch: DashboardLaunch) -> None:

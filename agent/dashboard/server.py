@@ -3,7 +3,9 @@
 The WebSocket pushes JSON events (text messages) and frames / agent audio (binary messages, see
 `events.pack_binary`). Every page has its own sender: when a page falls behind, only its newest few frames wait
 (older ones are skipped and counted), so a slow browser never holds up the bus or other pages.
-A page sends `{"type": "control", "command": "start" | "stop"}` and `{"type": "audio", "enabled": bool}`.
+A page sends `{"type": "control", "command": "start" | "stop"}`, `{"type": "audio", "enabled": bool}` (the
+agent's voice) and, with the browser microphone, `{"type": "mic", "enabled": bool}` then binary int16 PCM at
+24 kHz (header kind BINARY_MIC); one page at a time holds the microphone.
 """
 
 from __future__ import annotations
@@ -12,13 +14,14 @@ import asyncio
 import collections
 import json
 import logging
+import ssl
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Optional
 from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
 
-from agent.dashboard.events import Event
+from agent.dashboard.events import BINARY_HEADER, BINARY_MIC, Event
 
 log = logging.getLogger(__name__)
 
@@ -75,9 +78,12 @@ class Page:
 class Hub:
     """Fans events and frames out to every open page; passes the pages' commands to `on_command`."""
 
-    def __init__(self, snapshot: Callable[[], Iterable[Event]], on_command: Callable[[str], None]):
+    def __init__(self, snapshot: Callable[[], Iterable[Event]], on_command: Callable[[str], None],
+                 on_mic: Optional[Callable[[bytes], None]] = None):
         self.snapshot = snapshot
         self.on_command = on_command
+        self.on_mic = on_mic  # None: no browser microphone in this run
+        self.mic_page: Optional[Page] = None
         self.pages: set[Page] = set()
         self.skipped_frames_closed = 0  # frames skipped by pages that have since closed
 
@@ -113,7 +119,11 @@ class Hub:
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT:
                     self._on_page_message(page, msg.data)
+                elif msg.type == WSMsgType.BINARY:
+                    self._on_page_audio(page, msg.data)
         finally:
+            if self.mic_page is page:
+                self.mic_page = None
             self.pages.discard(page)
             self.skipped_frames_closed += page.skipped_frames
             sender.cancel()
@@ -132,8 +142,31 @@ class Hub:
             self.on_command(msg["command"])
         elif msg.get("type") == "audio":
             page.wants_audio = bool(msg.get("enabled"))
+        elif msg.get("type") == "mic":
+            self._claim_mic(page, bool(msg.get("enabled")))
         else:
             log.warning("ignored an unknown page message: %.80r", text)
+
+
+    def _claim_mic(self, page: Page, enabled: bool) -> None:
+        if not enabled:
+            if self.mic_page is page:
+                self.mic_page = None
+            return
+        if self.on_mic is None:
+            reason = "this run does not take the browser's microphone (launch.py --browser-mic)"
+        elif self.mic_page not in (None, page):
+            reason = "another page holds the microphone"
+        else:
+            self.mic_page, reason = page, ""
+        page.push_event(json.dumps({"type": "mic", "granted": not reason, "reason": reason}))
+
+    def _on_page_audio(self, page: Page, data: bytes) -> None:
+        if page is not self.mic_page or len(data) <= BINARY_HEADER.size or data[0] != BINARY_MIC:
+            return
+        payload = data[BINARY_HEADER.size:]
+        if len(payload) % 2 == 0:
+            self.on_mic(payload)
 
 
 def same_origin(request: web.Request) -> bool:
@@ -158,11 +191,17 @@ def make_app(hub: Hub) -> web.Application:
     return app
 
 
-async def start_server(app: web.Application, host: str, port: int) -> tuple[web.AppRunner, int]:
-    """Listen on host:port; returns the runner and the bound port (port 0: any free one)."""
+async def start_server(app: web.Application, host: str, port: int,
+                       tls: Optional[tuple[str, str]] = None) -> tuple[web.AppRunner, int]:
+    """Listen on host:port (https with `tls` = (cert, key) PEM paths); returns the runner and the bound port
+    (port 0: any free one)."""
+    ssl_context = None
+    if tls is not None:
+        ssl_context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        ssl_context.load_cert_chain(*tls)
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
-    site = web.TCPSite(runner, host, port)
+    site = web.TCPSite(runner, host, port, ssl_context=ssl_context)
     try:
         await site.start()
     except OSError as e:

@@ -3,7 +3,7 @@
 "use strict";
 
 const STEP_S = 0.08;
-const KIND_FRAME = 1, KIND_AUDIO = 2;
+const KIND_FRAME = 1, KIND_AUDIO = 2, KIND_MIC = 3;
 const HISTORY = 250;  // steps on the charts (20 s)
 const STAGE_COLORS = ["#8e9aaf", "#4c9be8", "#f0a13a", "#5cb85c", "#c678dd"];
 const TURN_COLORS = {user: "#4c9be8", agent: "#5cb85c", overlap: "#e8a23c", none: "#2a323b"};
@@ -11,7 +11,7 @@ const TURN_COLORS = {user: "#4c9be8", agent: "#5cb85c", overlap: "#e8a23c", none
 // Read by the tests and handy in the console.
 const dash = window.dashboard = {
   frames: 0, framesSkipped: 0, lastFrameStep: -1, latencySamples: 0, chartDraws: 0, chartLastStep: -1, words: 0,
-  phase: "connecting", pipeline: [], audioSteps: 0,
+  phase: "connecting", pipeline: [], audioSteps: 0, micBlocks: 0, userDbfs: -90,
 };
 
 const $ = (id) => document.getElementById(id);
@@ -43,6 +43,7 @@ function onEvent(e) {
     case "vad": onVad(e); break;
     case "latency": onLatency(e); break;
     case "counters": onCounters(e); break;
+    case "mic": if (!e.granted) { stopMic(); $("micinfo").textContent = e.reason; } break;
   }
 }
 
@@ -56,6 +57,8 @@ function onBinary(buf) {
 // ---- run state and controls -----------------------------------------------------------------------------
 function onHello(e) {
   dash.pipeline = e.pipeline;
+  $("mic").hidden = !e.browser_mic;
+  if (mic.on) send({type: "mic", enabled: true});  // reconnected: claim the microphone again
   latency = []; turnHistory = []; chartDirty = stripDirty = true;
   turnEls.forEach((el) => el.remove()); turnEls.clear();
   $("legend").innerHTML = e.pipeline.map((s, i) => `<span><i style="background:${STAGE_COLORS[i]}"></i>${s}</span>`)
@@ -153,6 +156,57 @@ function playAudioUpTo(step) {
   }
 }
 
+// ---- the browser's microphone as the user's voice (launch.py --browser-mic) ------------------------------
+const mic = {on: false, ctx: null, stream: null, seq: 0};
+
+$("mic").onclick = () => (mic.on ? stopMic() : startMic());
+
+async function startMic() {
+  $("micinfo").textContent = "";
+  if (!navigator.mediaDevices) {
+    $("micinfo").textContent = "no microphone here: browsers allow it on https or localhost only";
+    return;
+  }
+  try {
+    mic.stream = await navigator.mediaDevices.getUserMedia(
+      {audio: {echoCancellation: true, noiseSuppression: true, autoGainControl: true, channelCount: 1}});
+    mic.ctx = new AudioContext({sampleRate: 24000});
+    await mic.ctx.audioWorklet.addModule("/static/mic-worklet.js");
+    const node = new AudioWorkletNode(mic.ctx, "mic-blocks");
+    const mute = mic.ctx.createGain();
+    mute.gain.value = 0;
+    mic.ctx.createMediaStreamSource(mic.stream).connect(node).connect(mute).connect(mic.ctx.destination);
+    node.port.onmessage = (ev) => sendMic(ev.data);
+  } catch (err) {
+    stopMic();
+    $("micinfo").textContent = `microphone unavailable: ${err.message}`;
+    return;
+  }
+  mic.on = true;
+  $("mic").classList.add("on"); $("mic").textContent = "🎤 Mute";
+  send({type: "mic", enabled: true});
+  ensureAudio();
+}
+
+function stopMic() {
+  if (mic.stream) mic.stream.getTracks().forEach((t) => t.stop());
+  if (mic.ctx) mic.ctx.close();
+  Object.assign(mic, {on: false, ctx: null, stream: null});
+  $("mic").classList.remove("on"); $("mic").textContent = "🎤 Talk";
+  send({type: "mic", enabled: false});
+}
+
+function sendMic(block) {
+  if (!mic.on || !ws || ws.readyState !== WebSocket.OPEN) return;
+  const buf = new ArrayBuffer(8 + 2 * block.length);
+  const view = new DataView(buf);
+  view.setUint8(0, KIND_MIC); view.setUint32(4, mic.seq++, true);
+  const pcm = new Int16Array(buf, 8);
+  for (let i = 0; i < block.length; i++) pcm[i] = Math.max(-1, Math.min(1, block[i])) * 32767;
+  ws.send(buf);
+  dash.micBlocks += 1;
+}
+
 // ---- transcript -----------------------------------------------------------------------------------------
 const turnEls = new Map();
 
@@ -180,6 +234,9 @@ function esc(s) { return s.replace(/[&<>"]/g, (c) => ({"&": "&amp;", "<": "&lt;"
 
 // ---- voice activity and the floor -----------------------------------------------------------------------
 function onVad(e) {
+  dash.userDbfs = e.user_dbfs;
+  $("levelbar").style.width = `${Math.max(0, Math.min(100, (e.user_dbfs + 60) / 60 * 100))}%`;
+  $("level").textContent = e.user_dbfs <= -89 ? "-∞ dB" : `${e.user_dbfs.toFixed(0)} dB`;
   $("vadbar").style.width = `${Math.round(e.prob * 100)}%`;
   $("vadstate").textContent = e.state;
   $("agentspeaking").className = "dot" + (e.agent_speaking ? " on" : "");
