@@ -5,7 +5,8 @@
 For each GL platform (OSMesa, EGL; each in its own process, as PyOpenGL binds one platform per process) and
 frame size (256², 512², 1280x720) it times the in-place vertex-buffer path next to the naive path that builds
 a new pyrender Mesh every frame (and, on EGL, pyrender's default 4x MSAA), on the same BEAT2 poses in the
-same run, alternating frame by frame; `cpu_median_ms` is the process CPU time per frame (all threads). Then it renders the BEAT2 clip to
+same run, alternating frame by frame; `cpu_median_ms` is the process CPU time per frame (all threads).
+Then it renders the BEAT2 clip to
 an MP4 at 512² (OSMesa) and reports the real-time factor. The machine is shared and timings are noisy:
 compare the paths within one run, and read `load_avg`.
 """

@@ -15,7 +15,7 @@ blendshapes (vertex offsets in metres at activation 1):
 |---|---|---|
 | smile | mouth corners 6.5 mm up, 3 mm out and back; cheeks follow | 0.9 psi_0 + 0.6 psi_2 |
 | brow_raise | brows 6 mm up, forehead 3 mm (negative: frown) | 1.2 psi_2 + 0.8 psi_6 |
-| blink | eyes flatten to a line (negative: wider open) | -0.118 psi_76 + 0.101 psi_73 + 0.099 psi_19 - 0.096 psi_81 + 0.095 psi_22 + 0.091 psi_35 |
+| blink | eyes close to a line | -.118 psi_76 + .101 psi_73 + .099 psi_19 - .096 psi_81 + .095 psi_22 + .091 psi_35 |
 | mouth_wide | corners 7 mm outward (an "ee") | 0.5 psi_7 - 0.4 psi_9 |
 | pucker | corners 6 mm inward, lips 6 mm forward (an "oo") | 0.6 psi_8 - 0.4 psi_10 |
 | lips_apart | lower lip 8 mm down, upper lip 3 mm up (opens without the jaw) | -1.2 psi_1 + 0.9 psi_5 |

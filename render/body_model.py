@@ -90,12 +90,13 @@ def _body_model_from_arrays(data: dict, name: str) -> BodyModel:
     j_regressor = _dense(data["J_regressor"])
     shapedirs = _dense(data["shapedirs"])
     if v_template.shape != (n, 3) or faces.ndim != 2 or faces.shape[1] != 3 or faces.max() >= n:
-        raise BodyModelError(f"render.body_model: v_template {v_template.shape} and f {faces.shape} do not form a mesh. "
-                             f"{SMPLX_HELP}")
+        raise BodyModelError(f"render.body_model: v_template {v_template.shape} and f {faces.shape} do not form "
+                             f"a mesh. {SMPLX_HELP}")
     if weights.shape != (n, NUM_JOINTS) or j_regressor.shape != (NUM_JOINTS, n):
         raise BodyModelError(f"render.body_model: weights {weights.shape} / J_regressor {j_regressor.shape} are not "
                              f"SMPL-X's 55 joints over {n} vertices. {SMPLX_HELP}")
-    if shapedirs.ndim != 3 or shapedirs.shape[:2] != (n, 3) or shapedirs.shape[2] < SHAPE_SPACE_DIM + EXPRESSION_SPACE_DIM:
+    n_dirs = SHAPE_SPACE_DIM + EXPRESSION_SPACE_DIM
+    if shapedirs.ndim != 3 or shapedirs.shape[:2] != (n, 3) or shapedirs.shape[2] < n_dirs:
         raise BodyModelError(f"render.body_model: shapedirs {shapedirs.shape} lacks the 100 expression directions "
                              f"(need (V, 3, >= 400), as in SMPLX_*_2020). {SMPLX_HELP}")
     posedirs = _dense(data["posedirs"]) if "posedirs" in data else None

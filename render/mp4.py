@@ -14,7 +14,7 @@ from pathlib import Path
 import av
 import numpy as np
 
-from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
+from agent.timing import MOTION_FPS, SAMPLE_RATE_HZ
 
 
 class Mp4Error(RuntimeError):
@@ -52,7 +52,8 @@ class Mp4Writer:
     def write(self, frame_rgb: np.ndarray, audio: np.ndarray) -> None:
         """frame_rgb (H, W, 3) uint8; audio (samples_per_frame,) or (samples_per_frame, channels) float32."""
         if frame_rgb.shape != (self.height, self.width, 3) or frame_rgb.dtype != np.uint8:
-            raise Mp4Error(f"frame must be ({self.height}, {self.width}, 3) uint8, got {frame_rgb.shape} {frame_rgb.dtype}")
+            raise Mp4Error(f"frame must be ({self.height}, {self.width}, 3) uint8, "
+                           f"got {frame_rgb.shape} {frame_rgb.dtype}")
         audio = np.asarray(audio, dtype=np.float32)
         if audio.ndim == 1:
             audio = audio[:, None]
@@ -63,7 +64,8 @@ class Mp4Writer:
         video_frame = av.VideoFrame.from_ndarray(frame_rgb, format="rgb24")
         video_frame.pts = self.frames_written
         self._container.mux(self._video.encode(video_frame))
-        audio_frame = av.AudioFrame.from_ndarray(np.clip(planar, -1.0, 1.0), format="fltp", layout=self._audio.layout.name)
+        audio_frame = av.AudioFrame.from_ndarray(np.clip(planar, -1.0, 1.0), format="fltp",
+                                                 layout=self._audio.layout.name)
         audio_frame.sample_rate = self.sample_rate_hz
         audio_frame.pts = self.frames_written * self.samples_per_frame
         self._container.mux(self._audio.encode(audio_frame))
