@@ -19,6 +19,9 @@ class DialogueBackend(Protocol):
     def step(self, user_pcm: np.ndarray) -> DialogueStep:
         """user_pcm (1920,) float32 @ 24 kHz -> the step's DialogueStep (header fields left default)."""
 
+    def skip(self, n_steps: int) -> None:
+        """Input steps were dropped (live mode): advance the clocks."""
+
     def close(self) -> None: ...
 
 

@@ -57,6 +57,12 @@ class UserListener:
         self._turn_start_s = 0.0
         self._turn_end_s = 0.0
 
+    def skip(self, seconds: float) -> None:
+        """Advance the stream clock over dropped input, so later events keep their true times."""
+        self._t_s += seconds
+        self._chunk_t_s += seconds
+        self.turns.skip(seconds)
+
     def step(self, user_pcm: np.ndarray, agent_pcm_played: np.ndarray | None) -> Heard:
         """user_pcm (1920,) @ 24 kHz; agent_pcm_played: what the loudspeaker played in the previous step."""
         mic = self.resample_user.process(user_pcm)  # (1280,) @ 16 kHz

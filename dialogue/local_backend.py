@@ -86,6 +86,12 @@ class LocalBackend:
         self._awaiting_answer_since_s: float | None = None  # end of the user speech being answered
         self.response_latencies_s: list[float] = []  # end of user speech -> first agent audio can play
 
+    def skip(self, n_steps: int) -> None:
+        """Live mode dropped n_steps of input: advance the clocks so the transcript's times stay true."""
+        self._step_index += n_steps
+        self.listener.skip(n_steps * STEP_S)
+        self._last_agent_pcm = None
+
     def close(self) -> None:
         if self._reply is not None:
             self._reply.cancel()

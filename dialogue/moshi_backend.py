@@ -108,6 +108,12 @@ class MoshiBackend:
         self._last_text_s = 0.0
         self._last_agent_pcm: np.ndarray | None = None
 
+    def skip(self, n_steps: int) -> None:
+        """Live mode dropped n_steps of input: advance the clocks so the transcript's times stay true."""
+        self._step_index += n_steps
+        self.listener.skip(n_steps * STEP_S)
+        self._last_agent_pcm = None
+
     def close(self) -> None:
         pass
 

@@ -62,6 +62,12 @@ class PlaybackBackend:
         self._started = False
         self._last_agent_pcm: np.ndarray | None = None
 
+    def skip(self, n_steps: int) -> None:
+        """Live mode dropped n_steps of input: advance the clocks so the transcript's times stay true."""
+        self._step_index += n_steps
+        self.listener.skip(n_steps * STEP_S)
+        self._last_agent_pcm = None
+
     def close(self) -> None:
         pass
 

@@ -19,6 +19,7 @@ class DialogueComponent:
         self.backend = backend
         self.transcript_path = transcript_path
         self._steps = 0
+        self._last_step = -1  # the source numbers its steps from 0
 
     @property
     def spec(self):
@@ -27,6 +28,9 @@ class DialogueComponent:
     def handle(self, msg: Message) -> Sequence[Message]:
         if not isinstance(msg, AudioUser):
             return ()
+        if msg.step > self._last_step + 1:
+            self.backend.skip(msg.step - self._last_step - 1)  # steps dropped upstream (live mode)
+        self._last_step = msg.step
         out = self.backend.step(msg.pcm)
         self._steps += 1
         if self._steps % TRANSCRIPT_EVERY_STEPS == 0:

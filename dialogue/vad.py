@@ -59,6 +59,10 @@ class VadStateMachine:
         self._mark_s = 0.0  # where that run began
         self._t_s = 0.0
 
+    def skip(self, seconds: float) -> None:
+        """Advance the clock over audio that was never heard (dropped input)."""
+        self._t_s += seconds
+
     @property
     def in_turn(self) -> bool:
         """True while the user holds the turn (SPEAKING or STOPPING)."""

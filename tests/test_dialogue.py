@@ -193,3 +193,21 @@ def test_sixty_second_monologue(tmp_path):
     assert sum(len(t["words"]) for t in user) > 60
     assert any(t["answered"] for t in user) and turns(transcript, "agent")
     assert len(steps) == len(blocks(np.concatenate([speech, silence(4.0)])))
+
+
+def test_dropped_input_steps_keep_transcript_times_true(tmp_path):
+    """Live mode may drop audio.user steps: times after the gap still follow the message step numbers."""
+    import json
+
+    from agent.messages import AudioUser
+    from agent.stage import RunContext
+    from dialogue.process import create_component
+
+    comp = create_component(dialogue_cfg(), RunContext(tmp_path, True, 0, "live"))
+    speech_blocks = blocks(np.concatenate([load_24k(LIBRIVOX), silence(3.0)]))
+    gap = 25  # 2 s of input never arrived before the user spoke
+    for i, block in enumerate(speech_blocks):
+        comp.handle(AudioUser(pcm=block, step=i + gap))
+    comp.close()
+    (user,) = [t for t in json.loads((tmp_path / "transcript.json").read_text())["turns"] if t["speaker"] == "user"]
+    assert 2.0 <= user["words"][0]["start_s"] < 3.0 and user["end_s"] < 2.0 + 7.3
