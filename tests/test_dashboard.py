@@ -22,10 +22,12 @@ from PIL import Image
 from agent.config import ConfigError, build_dataclass
 from agent.dashboard.browser import HeadlessChromium, find_chromium
 from agent.dashboard.config import DashboardConfig
-from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER, LatencyMeter, RunState, Transcript,
-                                    frame_jpeg, pack_binary, turn_state)
+from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER, BINARY_MIC, LatencyMeter, RunState,
+                                    Transcript, frame_jpeg, level_dbfs, pack_binary, turn_state)
+from agent.dashboard.mic import MAX_BUFFER_STEPS, PRIME_STEPS, BrowserMicSource, MicRelay
 from agent.dashboard.server import Hub, make_app, start_server
 from agent.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
+from agent.timing import STEP_SAMPLES
 from tests.test_runtime import finish, launch, leftovers
 
 PIPELINE = ("io", "dialogue", "gesture", "render")
@@ -195,6 +197,109 @@ def test_a_port_in_use_gives_a_clear_error():
     asyncio.run(scenario())
 
 
+def test_one_page_at_a_time_holds_the_microphone_and_only_its_audio_is_relayed():
+    relayed = []
+
+    async def scenario():
+        hub = Hub(list, print, relayed.append)
+        runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
+        try:
+            async with aiohttp.ClientSession() as http:
+                async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as first, \
+                        http.ws_connect(f"http://127.0.0.1:{port}/ws") as second:
+                    await second.send_bytes(pack_binary(BINARY_MIC, 0, 0, b"\x01\x00"))  # not claimed: ignored
+                    await first.send_str(json.dumps({"type": "mic", "enabled": True}))
+                    assert json.loads((await first.receive()).data) == {"type": "mic", "granted": True, "reason": ""}
+                    await second.send_str(json.dumps({"type": "mic", "enabled": True}))
+                    refused = json.loads((await second.receive()).data)
+                    assert refused["granted"] is False and "another page" in refused["reason"]
+                    await first.send_bytes(pack_binary(BINARY_MIC, 1, 0, b"\x02\x00\x03\x00"))
+                    await first.send_bytes(pack_binary(BINARY_MIC, 2, 0, b"\x02\x00\x03"))  # odd length: skipped
+                    await _until(lambda: relayed)
+                    await first.close()
+                    await _until(lambda: hub.mic_page is None)
+        finally:
+            await runner.cleanup()
+
+    asyncio.run(scenario())
+    assert relayed == [b"\x02\x00\x03\x00"]
+
+
+def test_agent_audio_reaches_only_pages_that_asked_for_it():
+    async def scenario():
+        hub = Hub(list, print)
+        runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
+        try:
+            async with aiohttp.ClientSession() as http:
+                async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
+                    hub.broadcast_audio(b"before")
+                    await ws.send_str(json.dumps({"type": "audio", "enabled": True}))
+                    await _until(lambda: all(p.wants_audio for p in hub.pages))
+                    hub.broadcast_audio(b"after")
+                    assert (await ws.receive()).data == b"after"
+        finally:
+            await runner.cleanup()
+
+    asyncio.run(scenario())
+
+
+def test_https_with_a_certificate(tmp_path):
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1",
+                    "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True)
+
+    async def scenario():
+        runner, port = await start_server(make_app(Hub(list, print)), "127.0.0.1", 0, (str(cert), str(key)))
+        try:
+            async with aiohttp.ClientSession() as http:
+                async with http.get(f"https://127.0.0.1:{port}/", ssl=False) as page:
+                    assert page.status == 200
+        finally:
+            await runner.cleanup()
+
+    asyncio.run(scenario())
+    with pytest.raises(ConfigError, match="dashboard.tls_cert: tls_cert and tls_key must be given together"):
+        build_dataclass(DashboardConfig, {"tls_cert": str(cert)}, "dashboard")
+
+
+def test_browser_mic_source_primes_plays_out_and_bounds_its_buffer(tmp_path):
+    source = BrowserMicSource(tmp_path)
+    ramp = np.arange(STEP_SAMPLES * 3, dtype=np.float32) / 1e5
+    source.add(ramp[:STEP_SAMPLES])
+    assert not source.take_step().any()  # one step buffered: not primed yet, silence
+    source.add(ramp[STEP_SAMPLES:])
+    played = np.concatenate([source.take_step() for _ in range(3)])
+    np.testing.assert_array_equal(played, ramp)  # in order, across chunk boundaries
+    assert not source.take_step().any() and source.underruns == 1  # ran dry: silence, and primes again
+    source.add(np.ones(STEP_SAMPLES * (MAX_BUFFER_STEPS + PRIME_STEPS), np.float32))
+    assert source.dropped_samples == STEP_SAMPLES * PRIME_STEPS and source.buffered == MAX_BUFFER_STEPS * STEP_SAMPLES
+
+
+def test_browser_mic_source_delivers_relayed_audio_in_real_time_steps(tmp_path):
+    relay = MicRelay(tmp_path)
+    source = BrowserMicSource(tmp_path)
+    try:
+        blocks = []
+        while len(blocks) < 8:
+            block = source.next_block(timeout_s=0.005)
+            if block is not None:
+                blocks.append(block)
+                relay.send((np.full(STEP_SAMPLES, 0.25) * 32767).astype("<i2").tobytes())
+        pcm = np.stack([b[0] for b in blocks])  # (8, STEP_SAMPLES)
+        due = np.diff([b[1] for b in blocks])
+        assert np.all(due == 80_000_000)  # one step per 80 ms of capture time
+        assert not pcm[0].any() and np.allclose(pcm[-1], 0.25, atol=1e-4)
+        assert source.counters()["mic_received_samples"] >= STEP_SAMPLES * 4
+    finally:
+        source.close()
+        relay.close()
+
+
+def test_level_in_dbfs():
+    assert level_dbfs(np.zeros(1920, np.float32)) == -90.0
+    assert level_dbfs(np.full(1920, 0.5, np.float32)) == pytest.approx(-6.0, abs=0.1)
+
+
 async def _until(condition, timeout_s: float = 5.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():
@@ -265,6 +370,8 @@ def test_a_live_run_shows_in_headless_chromium(tmp_path):
     assert later["chartDraws"] > state["chartDraws"] and later["chartColoured"] > 100
     assert later["latencySamples"] > state["latencySamples"]
     assert "render" in later["counters"] and "dashboard" in later["counters"]
+    # Start also turned the agent's voice on: its steps were scheduled as their frames showed.
+    assert later["audioSteps"] > 0
 
 
 async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, float]:

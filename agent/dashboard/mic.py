@@ -73,7 +73,7 @@ class BrowserMicSource:
         if time.monotonic_ns() < self.next_due_ns:
             return None
         due, self.next_due_ns = self.next_due_ns, self.next_due_ns + STEP_NS
-        return self._take_step(), due
+        return self.take_step(), due
 
     def _receive(self, timeout_s: float) -> None:
         if self.socket is None and not self._connect():
@@ -85,7 +85,7 @@ class BrowserMicSource:
                     _, payload = self.socket.recv_multipart(zmq.NOBLOCK)
                 except zmq.Again:
                     break
-                self._add(np.frombuffer(payload, "<i2").astype(np.float32) / 32768.0)
+                self.add(np.frombuffer(payload, "<i2").astype(np.float32) / 32768.0)
 
     def _connect(self) -> bool:
         text = self.address_file.read_text().strip() if self.address_file.exists() else ""
@@ -97,16 +97,24 @@ class BrowserMicSource:
         self.socket.connect(text)
         return True
 
-    def _add(self, pcm: np.ndarray) -> None:
+    def add(self, pcm: np.ndarray) -> None:
+        """Queue browser audio (float32 at 24 kHz); beyond MAX_BUFFER_STEPS the oldest is dropped."""
         self.buffer.append(pcm)
         self.buffered += pcm.size
         self.received_samples += pcm.size
-        while self.buffered > MAX_BUFFER_STEPS * STEP_SAMPLES:
-            oldest = self.buffer.popleft()
-            self.buffered -= oldest.size
-            self.dropped_samples += oldest.size
+        excess = self.buffered - MAX_BUFFER_STEPS * STEP_SAMPLES
+        while excess > 0:
+            oldest = self.buffer[0]
+            n = min(excess, oldest.size)
+            if n == oldest.size:
+                self.buffer.popleft()
+            else:
+                self.buffer[0] = oldest[n:]
+            self.buffered -= n
+            self.dropped_samples += n
+            excess -= n
 
-    def _take_step(self) -> np.ndarray:
+    def take_step(self) -> np.ndarray:
         """(1920,) float32: buffered browser audio once primed, else silence."""
         block = np.zeros(STEP_SAMPLES, np.float32)
         if not self.primed:
