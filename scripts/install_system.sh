@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Debian packages the project needs; installs only what is missing (with sudo when not root).
 set -euo pipefail
-REQUIRED=(libosmesa6 libgl1 libegl1 libportaudio2 espeak-ng libespeak-ng1 libsndfile1)
+REQUIRED=(libosmesa6 libgl1 libegl1 libegl-mesa0 libportaudio2 espeak-ng libespeak-ng1 libsndfile1)
 OPTIONAL=(chromium)  # the dashboard's browser test; skipped with a reason when absent
 
 missing() { for p in "$@"; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done; }
