@@ -57,7 +57,7 @@ class DashboardBridge:
 
     def __init__(self, launch: DashboardLaunch):
         app = launch.app
-        self.cfg, self.bus, self.live = app.dashboard, app.bus, launch.run.live
+        self.cfg, self.live = app.dashboard, launch.run.live
         self.pipeline = tuple(app.run.stages)
         self.session = launch.run.session
         ctx = zmq.Context.instance()
