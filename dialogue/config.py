@@ -38,7 +38,7 @@ class EchoConfig:
     """
 
     mode: Literal["off", "gate"] = "gate"
-    max_delay_s: float = 0.4  # the longest playback -> microphone delay searched
+    max_delay_s: float = 0.8  # the longest playback -> microphone delay (speaker and mic buffers, bus)
     margin_db: float = 6.0  # how much louder than the loudest possible echo the user must be
 
     def __post_init__(self):
