@@ -101,6 +101,16 @@ def test_tiny_moshi_runs_through_the_dialogue_component(tiny_moshi_files, tmp_pa
     assert transcript["backend"] == "moshi"
 
 
+def test_classifier_free_guidance_from_config(tiny_moshi_files, tmp_path):
+    component = create_component(_moshi_cfg(tiny_moshi_files, cfg_coef=2.0, temp=0.0, temp_text=0.0),
+                                 RunContext(tmp_path, False, 0, "s"))
+    assert component.backend.lm_gen.cfg_coef == 2.0 and component.backend.lm_gen.temp == 0.0
+    outs = [component.handle(AudioUser(pcm=np.zeros(STEP_SAMPLES, np.float32), step=i))[0] for i in range(4)]
+    component.close()
+    assert all(0 <= o.text_token < TINY_TEXT_CARD + 1 for o in outs[1:])
+    assert all(((o.agent_codes >= 0) & (o.agent_codes < TINY_CARD)).all() for o in outs[1:])
+
+
 def test_released_sizes_give_moshi_spec():
     from moshi.models import loaders
 
