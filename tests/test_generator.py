@@ -189,3 +189,15 @@ def test_bfloat16_step_path_decodes_close_to_float32():
         a, b = fast._decode(tokens), exact._decode(tokens)
         for x, y in zip(a, b):
             assert np.abs(x - y).max() < 0.02 * max(1.0, np.abs(y).max())
+
+
+def test_idle_slices_load_from_the_reference_layout(tmp_path):
+    from gesture.lm.idle import load_idle_slices
+    np.savez(tmp_path / "idle_upper_tokens_slices.npz", **{"0": np.arange(8 * 6).reshape(1, 8, 6) % 16})
+    with pytest.raises(FileNotFoundError, match="idle_face_tokens_slices.npz"):
+        load_idle_slices(tmp_path)
+    np.savez(tmp_path / "idle_face_tokens_slices.npz", **{"0": np.ones((1, 4, 3), int)})
+    upper, face = load_idle_slices(tmp_path)
+    assert upper.shape == (8, 6) and face.shape == (4, 3)
+    with pytest.raises(ValueError, match="idle upper tokens"):
+        IdleGate(upper[:7], face, slice(0, 8), slice(16, 20))
