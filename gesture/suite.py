@@ -2,7 +2,9 @@
 
 It loads the generator exactly as the runtime does (the `gesture:` section of configs/default.yaml, checked
 against the local backend's condition spec) and measures:
-- on held-out synthetic sessions (the `test` split of the synthetic directory), the agent's motion generated step
+- on held-out synthetic sessions (the `test` split of a synthetic directory; by default sessions k = 10, 20, 30 of
+  seed 0, generated on first use: scripts/train_default.sh trains on sessions 1..24 except the test ones 10 and
+  20, so none of them was seen in training), the agent's motion generated step
   by step from what the local dialogue backend would emit for the session's agent speech (speech codes of the
   agent audio, a text token at each word's first step), against the session's ground truth:
   BeatAlign and L1 divergence (gesture.evaluate's protocol), voice-activity accuracy of the VA head, the ratio
@@ -43,7 +45,7 @@ from gesture.data.beat2 import Take, find_takes, read_motion  # noqa: E402
 from gesture.data.chunks import motion_at_fps  # noqa: E402
 from gesture.data.tokenize import TokenizedTake, agent_audio_path, tokenize_take  # noqa: E402
 from gesture.generator import GestureGenerator  # noqa: E402
-from gesture.lm.codecs import REGIONS  # noqa: E402
+from gesture.lm.codecs import REGIONS, load_codecs  # noqa: E402
 from gesture.motion import canonicalize  # noqa: E402
 from gesture.regions import features_to_motion, motion_to_features  # noqa: E402
 from gesture.skeleton import Skeleton  # noqa: E402
@@ -65,7 +67,7 @@ GOALS = {
 @dataclass(frozen=True)
 class SuiteOptions:
     config: Path = REPO / "configs" / "default.yaml"
-    synthetic_root: Path = REPO / "data" / "synthetic"
+    synthetic_root: Path = REPO / "runs" / "suite_synthetic"  # generated on first use (see ensure_heldout)
     beat2_motion: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.npz"
     beat2_wav: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.wav"
     mean_speed: Path = SHARED_DATA / "beat2" / "mean_vel_smplxflame_30.npy"
@@ -174,6 +176,28 @@ class HeldoutSession:
     poses: np.ndarray  # (2T, 55, 3) canonical GT
     trans: np.ndarray
     expressions: np.ndarray
+
+
+HELDOUT_SESSION_NUMBERS = (10, 20, 30)
+
+
+def ensure_heldout(root: Path, n_sessions: int, minutes: float, seed: int) -> None:
+    """Generate held-out synthetic sessions into `root` unless it already has a test split."""
+    from gesture.data.synth.config import SynthConfig
+    from gesture.data.synthetic import AUDIO_DIR, MOTION_DIR, TRANSCRIPT_DIR, generate_session, take_id, write_session
+
+    split_csv = root / "train_test_split.csv"
+    if split_csv.is_file() and ",test" in split_csv.read_text():
+        return
+    cfg = SynthConfig()
+    for sub in (MOTION_DIR, AUDIO_DIR, TRANSCRIPT_DIR):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    ids = []
+    for k in HELDOUT_SESSION_NUMBERS[:n_sessions]:
+        conv, motion = generate_session(cfg, seed, k, minutes)
+        ids.append(take_id(cfg, k))
+        write_session(root, ids[-1], conv, motion, cfg.motion_fps)
+    split_csv.write_text("id,type\n" + "".join(f"{i},test\n" for i in ids))
 
 
 def load_heldout(root: Path, codecs: dict[str, GestureCodec], n_sessions: int, max_seconds: float) -> list[HeldoutSession]:
@@ -309,9 +333,10 @@ def run_suite(opts: SuiteOptions, progress=print) -> dict:
     started = time.perf_counter()
     gesture_cfg, dialogue_cfg = default_gesture_config(opts.config)
     generator = build_generator(gesture_cfg, opts.seed)
-    codecs = {r: d.codec for r, d in generator.decoders.items()}
+    codecs = load_codecs(gesture_cfg.codec_checkpoints)  # offline copies: the generator's decoders are streaming
     skeleton = Skeleton.default()
     mean_speed = M.load_mean_speed(opts.mean_speed)
+    ensure_heldout(opts.synthetic_root, opts.heldout_sessions, max(1.0, opts.heldout_seconds / 60), opts.seed)
     sessions = load_heldout(opts.synthetic_root, codecs, opts.heldout_sessions, opts.heldout_seconds)
     progress(f"held-out synthetic: {len(sessions)} sessions")
     heldout = evaluate_heldout(generator, codecs, sessions, mean_speed, skeleton)
@@ -347,7 +372,7 @@ def format_table(report: dict) -> str:
         f"| codec MPJPE (mm, 3 regions) | {m['codec_mpjpe_mm']:.1f} | – | ≤ 20 | {ok['codec_mpjpe_mm']} |",
         f"| BEAT2 clip (playback) BeatAlign | {b['beat_align']:.3f} | {b['beat_align_gt']:.3f} | – | – |",
         f"| BEAT2 clip (playback) L1div | {b['l1div']:.3f} | {b['l1div_gt']:.3f} | – | – |",
-        f"| no collapse: mean speed 5 min / first min | {c['mean_speed']:.3f} / {c['first_minute_speed']:.3f} m/s "
+        f"| no collapse: mean speed {c['minutes']:g} min / first min | {c['mean_speed']:.3f} / {c['first_minute_speed']:.3f} m/s "
         f"| – | within ±30% | {ok['collapse_rel_change']} |",
     ]
     return "\n".join(lines)

@@ -2,18 +2,19 @@
 # Reproduce the shipped default agent on CPU: synthetic dyadic sessions (+ the real BEAT2 clip) -> the three region
 # codecs -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and checkpoints/gesture_lm.
 #
-#   bash scripts/train_default.sh                 # the shipped run (about 35 min of wall time on 2 shared cores)
+#   bash scripts/train_default.sh                 # the shipped run (about 40 min of wall time on 2 shared cores)
 #   SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
 #
-# Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists.
+# Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists
+# (SYNTHETIC=data/synthetic reuses the dataset of `python -m gesture.data.synthetic --out data/synthetic`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PY=${PY:-.venv/bin/python}
 WORK=${WORK:-runs/default}
 SHIP=${SHIP:-checkpoints}
-SYNTHETIC=${SYNTHETIC:-data/synthetic}
-SESSIONS=${SESSIONS:-40}
+SYNTHETIC=${SYNTHETIC:-$WORK/synthetic}  # its own copy: nothing else writes there while it trains
+SESSIONS=${SESSIONS:-24}
 MINUTES=${MINUTES:-3}
 SEED=${SEED:-0}
 BEAT2_CLIP=${BEAT2_CLIP:-../shared/data/beat2/2_scott_0_1_1}
