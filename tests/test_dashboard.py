@@ -350,13 +350,14 @@ def test_a_live_run_shows_in_headless_chromium(tmp_path):
                   report)
     try:
         url = _wait_for_file(report / "dashboard.url", proc).strip()
-        state, later, stopped_s = asyncio.run(_watch_page(url, proc))
+        state, later, stopped_s, final_phase = asyncio.run(_watch_page(url, proc))
         code, output = finish(proc, timeout_s=30)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert code == 0, output
     assert stopped_s < 10, "Stop ended the run"  # the recording lasts 30 s
+    assert final_phase == "stopped" and "dashboard: stopped" in (report / "dashboard.log").read_text()
     assert leftovers(proc.pid) == []
     # A rendered frame: the test renderer paints frame of step n in grey level n % 256.
     r, g, b, a = state["pixel"]
@@ -374,7 +375,7 @@ def test_a_live_run_shows_in_headless_chromium(tmp_path):
     assert later["audioSteps"] > 0
 
 
-async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, float]:
+async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, float, str]:
     async with HeadlessChromium(url, 1280, 1000) as page:
         await page.wait_for("window.dashboard && window.dashboard.phase === 'ready'", timeout_s=90)
         assert await page.evaluate("document.getElementById('start').disabled") is False
@@ -387,7 +388,7 @@ async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, flo
         t0 = time.monotonic()
         while proc.poll() is None and time.monotonic() - t0 < 20:
             await asyncio.sleep(0.05)
-        return state, later, time.monotonic() - t0
+        return state, later, time.monotonic() - t0, await page.evaluate("window.dashboard.phase")
 
 
 def _wait_for_file(path: Path, proc: subprocess.Popen, timeout_s: float = 60) -> str:

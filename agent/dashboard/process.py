@@ -171,6 +171,7 @@ async def serve(launch: DashboardLaunch) -> None:
         bridge.hub.broadcast(bridge.run_state.event())
         await asyncio.sleep(0.1)  # let the pages receive the last events
     finally:
+        await bridge.hub.close_pages()
         await runner.cleanup()
         bridge.close()
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Optional
 from urllib.parse import urlsplit
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMsgType, web
 
 from agent.dashboard.events import BINARY_HEADER, BINARY_MIC, Event
 
@@ -100,6 +100,12 @@ class Hub:
     def broadcast_audio(self, data: bytes) -> None:
         for page in self.pages:
             page.push_audio(data)
+
+    async def close_pages(self, timeout_s: float = 1.0) -> None:
+        """Close every page's WebSocket (they would otherwise hold the server's shutdown)."""
+        closing = [page.ws.close(code=WSCloseCode.GOING_AWAY, message=b"the run ended") for page in self.pages]
+        if closing:
+            await asyncio.wait(map(asyncio.ensure_future, closing), timeout=timeout_s)
 
     def counters(self) -> dict[str, int]:
         return {"pages": len(self.pages),
