@@ -102,6 +102,17 @@ def with_character(app: AppConfig, character: str) -> AppConfig:
     return replace(app, gesture=replace(app.gesture, speaker=speaker))
 
 
+def with_dialogue_spec(app: AppConfig) -> AppConfig:
+    """Tell the gesture stage what the dialogue backend emits, so a mismatched LM fails at start-up."""
+    if app.gesture.dialogue_spec is not None or "dialogue" in app.run.components:
+        return app
+    from dialogue.backend import condition_spec
+    from gesture.config import ConditionSpecConfig
+
+    spec = ConditionSpecConfig(**condition_spec(app.dialogue).to_dict())
+    return replace(app, gesture=replace(app.gesture, dialogue_spec=spec))
+
+
 def check_inputs(app: AppConfig) -> None:
     """Fail before any process starts, with one line, on a bad recording or a missing microphone."""
     if "io" not in app.run.local_stages:
@@ -122,6 +133,7 @@ def main(argv=None) -> int:
         app = load_app_config(args.config, [*mode_overrides(args, speak_s), *args.overrides])
         if args.character is not None:
             app = with_character(app, args.character)
+        app = with_dialogue_spec(app)
         check_inputs(app)
     except (ConfigError, AudioFileError, NoAudioDevice) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -1,12 +1,15 @@
 """The interface every speech-text backend implements, and the factory that builds one from the config."""
 
+import json
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
 from agent.messages import DialogueStep
-from agent.spec import ConditionSpec
+from agent.spec import MOSHI_SPEC, ConditionSpec
 from dialogue.config import DialogueConfig
+from dialogue.text_vocab import LOCAL_SPEC
 from dialogue.transcript import Transcript
 
 
@@ -37,3 +40,17 @@ def build_backend(cfg: DialogueConfig, seed: int = 0) -> DialogueBackend:
     from dialogue.moshi_backend import MoshiBackend
 
     return MoshiBackend.from_config(cfg, seed)
+
+
+def condition_spec(cfg: DialogueConfig) -> ConditionSpec:
+    """The conditioning vocabulary a backend of this config emits, known without loading it.
+
+    The launcher gives it to the gesture stage, which refuses an LM trained on another spec.
+    """
+    if cfg.backend != "moshi":
+        return LOCAL_SPEC
+    if cfg.moshi.lm_config is None:
+        return MOSHI_SPEC
+    kwargs = json.loads(Path(cfg.moshi.lm_config).read_text())
+    return ConditionSpec(name="moshi", text_vocab=kwargs["text_card"] + 1, audio_card=kwargs["card"] + 1,
+                         embed_dim=kwargs["dim"])
