@@ -441,7 +441,8 @@ def test_real_dialogue_and_renderer_show_in_the_page(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert code == 0, output
-    assert seen["userWords"] >= 5 and "dashwood" in seen["transcript"].lower()
+    heard = {"john", "dashwood", "leisure", "consider", "power"} & set(seen["transcript"].lower().split())
+    assert seen["userWords"] >= 5 and len(heard) >= 2  # pocketsphinx misses about a third of the words
     assert seen["agentWords"] >= 2
     assert seen["frames"] > 10 and seen["spread"] > 100  # the avatar on its backdrop, not a blank canvas
     assert seen["latencySamples"] > 5
@@ -482,3 +483,39 @@ def test_the_pages_microphone_is_the_users_voice(tmp_path):
     io_counters = json.loads((report / "latency.json").read_text())["counters"]["io"]
     assert io_counters["mic_received_samples"] > 24_000  # more than a second of the page's audio
     assert leftovers(proc.pid) == []
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`)")
+@pytest.mark.skipif(not REAL_CLIP.exists(), reason=f"needs the shared recording {REAL_CLIP}")
+def test_the_real_dialogue_answers_the_pages_microphone(tmp_path):
+    """--browser-mic with the real dialogue: the recording (then a pause, so the turn ends) is heard, recognised
+    and answered. Chromium's fake microphone loops its file."""
+    pcm, rate = sf.read(REAL_CLIP, dtype="int16")
+    clip = tmp_path / "clip_then_pause.wav"
+    sf.write(clip, np.concatenate([pcm, np.zeros(rate * 5, np.int16)]), rate, subtype="PCM_16")
+    report = tmp_path / "run"
+    cmd = [sys.executable, str(Path(__file__).resolve().parents[1] / "launch.py"), "--browser-mic", "--report",
+           str(report), "--set", "dashboard.port=0", "--set", "run.components.gesture=tests.components:wave_gesture"]
+    proc = subprocess.Popen(cmd, cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+    async def talk(url: str) -> str:
+        async with HeadlessChromium(url, flags=(*FAKE_MIC, f"--use-file-for-fake-audio-capture={clip}")) as page:
+            await page.wait_for("window.dashboard && !document.getElementById('mic').hidden "
+                                "&& window.dashboard.frames > 0", timeout_s=180)
+            await page.evaluate("document.getElementById('mic').click()")
+            await page.wait_for("document.querySelectorAll('.msg.agent span').length >= 2", timeout_s=60)
+            text = await page.evaluate("document.getElementById('turns').innerText")
+            await page.evaluate("document.getElementById('stop').click()")
+            return text
+
+    try:
+        transcript = asyncio.run(talk(_wait_for_file(report / "dashboard.url", proc, timeout_s=180).strip()))
+        code, output = finish(proc, timeout_s=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 0, output
+    heard = {"john", "dashwood", "leisure", "consider", "power"} & set(transcript.lower().split())
+    assert len(heard) >= 2 and "agent" in transcript  # pocketsphinx misses about a third of the words
