@@ -5,6 +5,7 @@
 const STEP_S = 0.08;
 const KIND_FRAME = 1, KIND_AUDIO = 2, KIND_MIC = 3;
 const HISTORY = 250;  // steps on the charts (20 s)
+const MAX_TURNS = 200;
 const STAGE_COLORS = ["#8e9aaf", "#4c9be8", "#f0a13a", "#5cb85c", "#c678dd"];
 const TURN_COLORS = {user: "#4c9be8", agent: "#5cb85c", overlap: "#e8a23c", none: "#2a323b"};
 
@@ -219,6 +220,10 @@ function onTurn(t) {
     el.className = `msg ${t.speaker}`;
     turnEls.set(t.id, el);
     box.appendChild(el);
+    for (const [id, old] of turnEls) {  // a long session keeps its last MAX_TURNS turns on the page
+      if (turnEls.size <= MAX_TURNS) break;
+      old.remove(); turnEls.delete(id);
+    }
   }
   const when = (t.start_step * STEP_S).toFixed(1);
   const who = `<div class="who">${t.speaker === "user" ? "you" : "agent"} · ${when} s</div>`;
@@ -226,7 +231,8 @@ function onTurn(t) {
   const partial = t.partial ? ` <span class="partial">${esc(t.partial)}…</span>` : "";
   const tag = t.interrupted_at !== null ? '<span class="tag">✂ interrupted</span>' : "";
   el.innerHTML = who + words.join(" ") + partial + tag;
-  dash.words = [...turnEls.values()].reduce((n, e) => n + e.querySelectorAll("span:not(.tag)").length, 0);
+  el.dataset.words = t.words.length;
+  dash.words = [...turnEls.values()].reduce((n, e) => n + Number(e.dataset.words), 0);
   if (atBottom) box.scrollTop = box.scrollHeight;
 }
 
