@@ -25,8 +25,10 @@ from agent.dashboard.config import DashboardConfig
 from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER, BINARY_MIC, LatencyMeter, RunState,
                                     Transcript, frame_jpeg, level_dbfs, pack_binary, turn_state)
 from agent.dashboard.mic import MAX_BUFFER_STEPS, PRIME_STEPS, BrowserMicSource, MicRelay
+from agent.dashboard.process import page_url
 from agent.dashboard.server import Hub, make_app, start_server
 from agent.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
+from agent.sections import load_app_config
 from agent.timing import STEP_SAMPLES
 from tests.test_runtime import finish, launch, leftovers
 
@@ -151,6 +153,30 @@ def test_config_errors_name_the_option():
         build_dataclass(DashboardConfig, {"max_turns": 0}, "dashboard")
     assert DashboardConfig().loopback_only and DashboardConfig(host="localhost").loopback_only
     assert not DashboardConfig(host="0.0.0.0").loopback_only
+
+
+def test_launch_flags_for_the_dashboard():
+    import launch
+
+    def app(*argv):
+        return load_app_config(launch.DEFAULT_CONFIG, launch.mode_overrides(launch.parse_args(argv), None))
+
+    exposed = app("--replay", "talk.wav", "--host", "0.0.0.0")
+    assert exposed.dashboard.host == "0.0.0.0" and not exposed.dashboard.loopback_only and exposed.run.live
+    mic = app("--browser-mic")
+    assert mic.run.components["io"] == "agent.dashboard.mic:browser_io" and mic.dashboard.browser_mic
+    assert mic.dashboard.enabled and mic.run.live
+    assert not app("--replay", "talk.wav", "--headless").dashboard.enabled
+    with pytest.raises(SystemExit):
+        launch.parse_args(["--browser-mic", "--headless"])
+    with pytest.raises(SystemExit):
+        launch.parse_args(["--browser-mic", "--replay", "talk.wav"])
+
+
+def test_page_url_opens_a_wildcard_bind_through_loopback():
+    assert page_url("127.0.0.1", 8998) == "http://127.0.0.1:8998/"
+    assert page_url("0.0.0.0", 8998, tls=True) == "https://127.0.0.1:8998/"
+    assert page_url("::", 80) == "http://[::1]:80/" and page_url("fe80::1", 80) == "http://[fe80::1]:80/"
 
 
 # ---- server ---------------------------------------------------------------------------------------------------
