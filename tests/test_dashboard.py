@@ -55,6 +55,13 @@ def test_agent_words_form_a_turn_and_a_barge_in_marks_the_word_being_spoken():
     assert (later["id"], later["words"], later["interrupted_at"]) == (1, ["Sure"], None)
 
 
+def test_sentencepiece_pieces_are_joined_into_words():
+    transcript = Transcript(max_turns=10)
+    for n, piece in enumerate([" Hel", "lo", " there", ",", " friend"]):
+        (event,) = transcript.on_step(step(n, text_piece=piece, agent_speaking=True))
+    assert event["words"] == ["Hello", "there,", "friend"]
+
+
 def test_user_turn_shows_the_partial_hypothesis_until_its_words_are_final():
     transcript = Transcript(max_turns=10)
     assert transcript.on_step(step(0, user_vad_state=VadState.SPEAKING)) == []

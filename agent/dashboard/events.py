@@ -81,6 +81,7 @@ class Transcript:
         self._user: Optional[Turn] = None  # the open user turn
         self._agent: Optional[Turn] = None  # the open agent turn
         self._agent_idle_steps = 0
+        self._subwords = False  # the backend sends sentencepiece pieces (see _add_piece)
 
     def on_step(self, msg: DialogueStep) -> list[Event]:
         changed: dict[int, Turn] = {}
@@ -122,10 +123,9 @@ class Transcript:
 
     def _on_agent(self, msg: DialogueStep) -> list[Turn]:
         changed = []
-        if msg.text_piece:
+        if msg.text_piece.strip():
             turn = self._agent = self._agent or self._open("agent", msg.step)
-            turn.words.append(msg.text_piece.strip())
-            del turn.words[:-MAX_WORDS_PER_TURN]
+            self._add_piece(turn, msg.text_piece)
             changed.append(turn)
         if msg.agent_interrupted and self._agent is not None:
             turn, self._agent = self._agent, None
@@ -138,6 +138,16 @@ class Transcript:
             turn.final = True
             changed.append(turn)
         return changed
+
+    def _add_piece(self, turn: Turn, piece: str) -> None:
+        """A backend gives whole words (local, playback) or sentencepiece pieces where a leading space starts a
+        word (moshi): once a piece starts with a space, pieces without one continue the previous word."""
+        self._subwords = self._subwords or piece[0].isspace()
+        if self._subwords and not piece[0].isspace() and turn.words:
+            turn.words[-1] += piece.strip()
+        else:
+            turn.words.append(piece.strip())
+        del turn.words[:-MAX_WORDS_PER_TURN]
 
     def snapshot(self) -> list[Event]:
         return [t.event() for t in self.turns]
