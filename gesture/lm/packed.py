@@ -47,6 +47,17 @@ def linear(x: torch.Tensor, w, bias: torch.Tensor | None = None) -> torch.Tensor
     return out if bias is None else out + bias
 
 
+def gated_ffn(x: torch.Tensor, w_in, w_out) -> torch.Tensor:
+    """linear_out(SiLU(a) * b), (a, b) = linear_in(x); with packed weights the hidden stays bfloat16."""
+    if isinstance(w_in, PackedWeight) and isinstance(w_out, PackedWeight):
+        hidden = torch.ops.mkldnn._linear_pointwise(x.to(torch.bfloat16), w_in.tensor, None, "none", [], "")
+        gate, value = hidden.chunk(2, dim=-1)
+        out = torch.ops.mkldnn._linear_pointwise(F.silu(gate) * value, w_out.tensor, None, "none", [], "")
+        return out.to(F32)
+    gate, value = linear(x, w_in).chunk(2, dim=-1)
+    return linear(F.silu(gate) * value, w_out)
+
+
 class PackedLinear(nn.Module):
     """Inference-only stand-in for an `nn.Linear` with a packed bfloat16 weight; any leading shape."""
 

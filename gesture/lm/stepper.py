@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from gesture.lm.embeddings import table_index
 from gesture.lm.layers import LAYER_NORM_EPS, DepthLayer, TemporalLayer
 from gesture.lm.model import GestureLM
-from gesture.lm.packed import linear, pack_weight
+from gesture.lm.packed import gated_ffn, linear, pack_weight
 from gesture.nn.attention import attention_mask
 from gesture.nn.kv_cache import RingKVCache
 from gesture.nn.rope import apply_rope
@@ -35,9 +35,8 @@ from gesture.nn.streaming import StreamingState
 F32 = torch.float32
 
 
-def _ffn(x: torch.Tensor, w_in: torch.Tensor, w_out: torch.Tensor) -> torch.Tensor:
-    gate, value = linear(x, w_in).chunk(2, dim=-1)
-    return linear(F.silu(gate) * value, w_out)
+def _ffn(x: torch.Tensor, w_in, w_out) -> torch.Tensor:
+    return gated_ffn(x, w_in, w_out)
 
 
 def _rotate(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
