@@ -1,45 +1,19 @@
 """MP4 output: the writer (codecs, exact A/V lengths, no partial files), render.play on the BEAT2 clip, and the
 render stage component writing the conversation with its audio."""
 
-from pathlib import Path
-
-import av
 import numpy as np
 import pytest
 import torch
 
 from agent.messages import DialogueStep, GestureStep
 from agent.stage import RunContext
-from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ, STEP_SAMPLES
+from agent.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
 from render.config import RenderConfig
 from render.mp4 import Mp4Error, Mp4Writer
-from render.testing import BEAT2_NPZ, BEAT2_WAV, needs_beat2, needs_osmesa, silhouette, silhouette_center
+from render.testing import (BEAT2_NPZ, BEAT2_WAV, check_av_sync, decode, needs_beat2, needs_osmesa, silhouette,
+                            silhouette_center)
 
 torch.set_num_threads(1)
-
-
-def decode(path: Path) -> dict:
-    """Streams, codecs, decoded video frames and audio samples of an MP4."""
-    with av.open(str(path)) as container:
-        info = {"streams": [(s.type, s.codec_context.name) for s in container.streams],
-                "pix_fmt": container.streams.video[0].codec_context.pix_fmt,
-                "duration_s": float(container.duration) / av.time_base}
-        info["frames"] = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
-    with av.open(str(path)) as container:
-        audio = [f.to_ndarray() for f in container.decode(audio=0)]
-        info["audio_rate"] = container.streams.audio[0].codec_context.sample_rate
-        info["audio_channels"] = container.streams.audio[0].codec_context.channels
-    info["audio"] = np.concatenate(audio, axis=1)  # (C, N)
-    return info
-
-
-def check_av_sync(info: dict, n_frames: int) -> None:
-    assert sorted(info["streams"]) == [("audio", "aac"), ("video", "h264")]
-    assert info["pix_fmt"] == "yuv420p"
-    assert len(info["frames"]) == n_frames
-    assert abs(info["duration_s"] - n_frames / MOTION_FPS) < 1 / MOTION_FPS
-    audio_s = info["audio"].shape[1] / info["audio_rate"]
-    assert abs(audio_s - n_frames / MOTION_FPS) < 1 / MOTION_FPS  # within one frame
 
 
 def test_writer_streams_lengths_and_content(tmp_path):
