@@ -147,7 +147,8 @@ def main(argv=None) -> int:
     supervisor = Supervisor(app, run)
     code = supervisor.run()
     summary = supervisor.latency.write(run_dir, supervisor.counters(),
-                                       {s: asdict(e) for s, e in supervisor.clock.estimates().items()})
+                                       {s: asdict(e) for s, e in supervisor.clock.estimates().items()},
+                                       supervisor.stream_timing())
     print(format_table(summary))
     print(f"report: {run_dir}/ (latency.json, latency.png, transcript.json, <stage>.log)")
     return code

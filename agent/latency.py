@@ -56,17 +56,17 @@ class LatencyRecorder:
             seg["total"].append((stamps[stage] - previous) / NS_PER_MS)
             previous = stamps[stage]
 
-    def summary(self, counters: dict[str, dict], clock: dict[str, dict]) -> dict:
+    def summary(self, counters: dict[str, dict], clock: dict[str, dict], timing: dict | None = None) -> dict:
         mean_e2e = float(np.mean(self.e2e_ms)) if self.e2e_ms else float("nan")
         stages = {}
         for stage, seg in self.segments_ms.items():
             stages[stage] = {name: percentiles(values) for name, values in seg.items()}
             stages[stage]["share"] = round(float(np.mean(seg["total"])) / mean_e2e, 4) if self.e2e_ms else None
         return {"steps_measured": len(self.e2e_ms), "end_to_end_ms": percentiles(self.e2e_ms), "stages": stages,
-                "counters": counters, "clock_offsets": clock}
+                "counters": counters, "clock_offsets": clock, "stream": timing or {}}
 
-    def write(self, run_dir: Path, counters: dict[str, dict], clock: dict[str, dict]) -> dict:
-        summary = self.summary(counters, clock)
+    def write(self, run_dir: Path, counters: dict[str, dict], clock: dict[str, dict], timing: dict | None = None) -> dict:
+        summary = self.summary(counters, clock, timing)
         (run_dir / "latency.json").write_text(json.dumps(summary, indent=2))
         if self.e2e_ms:
             self._plot(run_dir / "latency.png")
@@ -110,7 +110,10 @@ def format_table(summary: dict) -> str:
     lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths)))
              for r in rows]
     lines.insert(1, "-" * len(lines[0]))
-    return "\n".join(lines) + f"\n({summary['steps_measured']} steps measured)"
+    stream = summary.get("stream") or {}
+    pace = (f"; {stream['audio_s']:.1f} s of audio in {stream['stream_wall_s']:.1f} s "
+            f"({stream['realtime_factor']:.2f}x real time)") if stream else ""
+    return "\n".join(lines) + f"\n({summary['steps_measured']} steps measured{pace})"
 
 
 def _fmt(value) -> str:

@@ -12,6 +12,7 @@ A stage supplies a `Component` (and the io stage also a `Source`). The runner:
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -160,7 +161,7 @@ class StageRunner:
 
     def _poll_timeout_ms(self) -> int:
         if self.source is not None and self.started and self.state != StageState.DONE:
-            return 0 if self.source.paced else min(MAX_POLL_MS, max(0, self._due_in_ms()))
+            return 0 if self.source.paced else min(MAX_POLL_MS, max(0, math.ceil(self._due_in_ms())))
         return MAX_POLL_MS
 
     # ---- control ---------------------------------------------------------------------------------------------
@@ -247,9 +248,10 @@ class StageRunner:
         log.info("end of stream")
 
     # ---- source (the io stage) -------------------------------------------------------------------------------
-    def _due_in_ms(self) -> int:
+    def _due_in_ms(self) -> float:
+        """Until the step's last sample is 'captured' (live replay); never early, so t_origin is in the past."""
         due_ns = self.source_t0_ns + (self.next_step + 1) * STEP_NS
-        return (due_ns - time.monotonic_ns()) // 1_000_000 if self.run_ctx.live else 0
+        return (due_ns - time.monotonic_ns()) / 1e6 if self.run_ctx.live else 0.0
 
     def _emit_source(self) -> None:
         if self.source.exhausted:

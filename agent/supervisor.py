@@ -30,6 +30,7 @@ from agent.messages import Command, Control, Log, Metrics
 from agent.process import COMPONENT_FACTORIES, StageLaunch, stage_main
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR, RunContext
+from agent.timing import STEP_MS
 
 log = logging.getLogger("supervisor")
 
@@ -60,6 +61,8 @@ class Supervisor:
         self.interrupted = False
         self.error: Optional[str] = None
         self.sink_done = False
+        self.started_s: Optional[float] = None  # START sent
+        self.finished_s: Optional[float] = None  # the sink's end of stream
         self.dashboard: Optional[DashboardProcess] = None
 
     # ---- lifecycle -------------------------------------------------------------------------------------------
@@ -79,6 +82,7 @@ class Supervisor:
             self._sync_clocks()
             self._wait_for_start()
             self._send(Command.START)
+            self.started_s = time.monotonic()
             log.info("started: %s", " → ".join(self.pipeline))
             self._watch()
         except RunFailed as e:
@@ -171,6 +175,7 @@ class Supervisor:
             status.counters = msg.detail
             if msg.source == self.pipeline[-1]:
                 self.sink_done = True
+                self.finished_s = time.monotonic()
 
     def _check_processes(self) -> None:
         now = time.monotonic()
@@ -202,6 +207,14 @@ class Supervisor:
         terminate(processes)
         self.sub.poll_into_queue()
         self._consume()
+
+    def stream_timing(self) -> dict:
+        """Wall time from START to the sink's end of stream, against the audio it carried."""
+        if self.started_s is None or self.finished_s is None:
+            return {}
+        wall_s = self.finished_s - self.started_s
+        audio_s = self.stages["io"].counters.get("sent_steps", 0) * STEP_MS / 1000
+        return {"stream_wall_s": round(wall_s, 3), "audio_s": audio_s, "realtime_factor": round(audio_s / wall_s, 3)}
 
     def counters(self) -> dict[str, dict]:
         return {name: status.counters for name, status in self.stages.items()}
