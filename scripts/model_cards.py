@@ -1,0 +1,103 @@
+"""Write the model cards of the shipped codecs and gesture LM from a training run's records.
+
+    python scripts/model_cards.py WORK SHIP    (scripts/train_default.sh calls it; WORK=runs/default, SHIP=checkpoints)
+"""
+import json
+import sys
+from pathlib import Path
+
+import yaml
+
+W, S = Path(sys.argv[1]), Path(sys.argv[2])
+CODEC = yaml.safe_load(Path("configs/codec/default_small.yaml").read_text())["train"]
+LM = yaml.safe_load(Path("configs/lm/default_small.yaml").read_text())["train"]
+times = dict(l.split('\t') for l in (W / 'wall_times.tsv').read_text().splitlines())
+gen = json.loads((W / 'synthetic' / 'generation.json').read_text())
+rows = []
+for r in ('upper', 'lower', 'face'):
+    d = json.loads((W / f'codec_{r}.json').read_text())
+    last = d['last']; key = 'jaw_error_deg' if r == 'face' else 'mpjpe_mm'
+    rows.append(f"| {r} | {last['step']} | {last['train'][key]:.2f} | {last['heldout'][key]:.2f} | "
+                f"{last['train']['feature_mse']:.5f} | {last['heldout']['feature_mse']:.5f} |")
+size = {r: (S / 'codecs' / r / 'model.safetensors').stat().st_size / 1e6 for r in ('upper', 'lower', 'face')}
+data = (f"- {gen['sessions']} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
+        f"--seed {gen['seed']}`, default SynthConfig; sessions 10 and 20 are the held-out `test` split), plus the real "
+        "BEAT2 clip `2_scott_0_1_1` (63.5 s, train split), cut into 10 s chunks by `python -m gesture.data.build`.")
+codec = f"""# The default gesture codecs (upper+hands, lower, face)
+
+Three causal RVQ-VAE codecs (gesture.codec, 2 frames per 80 ms step, 256 codes of dimension 32; n_q 8/8/4),
+trained on CPU for the shipped default agent. Load with `gesture.lm.codecs.load_codecs("checkpoints/codecs")` or
+`gesture.codec.checkpoint.load_codec("checkpoints/codecs/<region>")`; `configs/default.yaml` points
+`gesture.codec_checkpoints` here. Sizes (fp32 safetensors): upper {size['upper']:.1f} MB, lower {size['lower']:.1f} MB,
+face {size['face']:.1f} MB.
+
+## Data
+{data}
+
+## Config
+`configs/codec/default_small.yaml` (each region's `config.yaml` here is the full dump): latent 128, 64 SEANet
+filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch_size']} windows of up to
+{CODEC['window_frames']} frames, {CODEC['steps']} steps, StepLR ×0.8 every {CODEC['lr_step_every']} steps.
+
+## Metrics
+Reconstruction (offline encode -> decode with all levels) at the last step; MPJPE in mm over the 55 FK joints with
+only the region's joints replaced (zero translation), jaw error in degrees for the face; held-out = the synthetic
+test sessions:
+
+| region | steps | train MPJPE mm / jaw ° | held-out MPJPE mm / jaw ° | train feature MSE | held-out feature MSE |
+|---|---|---|---|---|---|
+{chr(10).join(rows)}
+
+The whole-body codec MPJPE (all three regions reconstructed together) on held-out synthetic sessions is in the
+quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<region>/loss_curve.png`.
+
+## Reproduce
+`bash scripts/train_default.sh` (stage `codecs`: `python -m gesture.train_codec --config
+configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>`,
+the three regions in parallel, `nice -n 5`, one thread each).
+
+Wall time of the codec stage (three regions in parallel on 2 cores): {int(times['codecs'])} s;
+synthetic data {int(times.get('synthetic', 0))} s, chunk cache {int(times['chunk_cache'])} s.
+"""
+(S / 'codecs' / 'README.md').write_text(codec)
+meta = json.loads((S / 'gesture_lm' / 'lm.json').read_text())
+losses = json.loads((S / 'gesture_lm' / 'losses.json').read_text())
+first, last = losses[0], losses[-1]
+fmt = lambda h: ", ".join(f"{k} {v:.3f}" for k, v in h.items() if k != 'epoch')
+tok = (W / 'lm_data' / 'speakers.json').read_text()
+lm = f"""# The default gesture LM (local-v1)
+
+The temporal + depth gesture transformer (gesture.lm, 20 levels: upper 0-7, lower 8-15, face 16-19, card 256)
+conditioned on the LOCAL dialogue backend: its text vocabulary (8192 hashed words) and its speech tokenizer
+(8 codes of 256 per step, `checkpoints/speech_tokenizer`). `lm.json` records the condition spec
+`{json.dumps(meta['condition'])}`; the generator refuses any other backend at start-up. Weights are stored in
+bfloat16 ({(S / 'gesture_lm' / 'lm.safetensors').stat().st_size / 1e6:.1f} MB) and loaded as float32 by
+`gesture.lm.checkpoint.load_lm`. Speaker indices: `speakers.json` {tok.strip()} — the synthetic agent is `synth`,
+so `gesture.speaker` is its index.
+
+## Data
+{data}
+Tokenized by `python -m gesture.data.tokenize` (train split only): gesture tokens from the three shipped codecs'
+encoders, the agent channel's speech codes, a text token at each agent word's first step (the clip's words from
+the local recogniser), voice activity per step.
+
+## Config
+`configs/lm/default_small.yaml`: d_model 96, 2 temporal layers, 1 depth layer, gated FFN 192, VA head; AdamW lr
+{LM['lr']:g}, batch {LM['batch_size']} windows of {LM['window_steps']} steps, {LM['epochs']} epochs of
+{LM['steps_per_epoch']} steps, StepLR ×{LM['lr_gamma']} every {LM['lr_step_epochs']} epochs, CFG condition dropout,
+pad input dropout, InfoNCE on Gumbel latents, VA loss weight {LM['va_weight']}.
+
+## Metrics
+Training losses, epoch 1: {fmt(first)}; epoch {last['epoch']}: {fmt(last)} (`losses.json`, `loss_curve.png`).
+Generation quality (BeatAlign, L1div, voice-activity accuracy, listening/speaking energy, BEAT2 clip, no-collapse)
+is measured by `python -m gesture.evaluate --suite default --json`; see the table below and the README.
+
+## Reproduce
+`bash scripts/train_default.sh` (stages `tokenize`: `python -m gesture.data.tokenize --root $WORK/data
+--codecs $WORK/codecs --out $WORK/lm_data`; `lm`: `python -m gesture.train_lm --config
+configs/lm/default_small.yaml --data $WORK/lm_data --codecs $WORK/codecs --out $WORK/lm`;
+`ship` converts the weights to bfloat16).
+
+Wall time on 2 cores: tokenize {int(times['tokenize'])} s, LM training {int(times['lm'])} s.
+"""
+(S / 'gesture_lm' / 'README.md').write_text(lm)
