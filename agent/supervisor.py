@@ -83,7 +83,8 @@ class Supervisor:
             self._wait_for_start()
             self._send(Command.START)
             self.started_s = time.monotonic()
-            log.info("started: %s", " → ".join(self.pipeline))
+            log.info("started: %s (bus: %s)", " → ".join(self.pipeline),
+                     self.ipc_dir if self.app.bus.transport == "ipc" else f"tcp {self.app.bus.host}")
             self._watch()
         except RunFailed as e:
             self.error = str(e)
