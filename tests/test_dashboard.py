@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import io
 import json
-import os
 import socket
 import struct
 import subprocess
@@ -449,12 +448,13 @@ VIDEO_SPREAD = """(() => {
 @pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`)")
 @pytest.mark.skipif(not REAL_CLIP.exists(), reason=f"needs the shared recording {REAL_CLIP}")
 def test_real_dialogue_and_renderer_show_in_the_page(tmp_path):
-    """The real dialogue (VAD, ASR, responder, TTS) and renderer; the gesture stage is the test one until the
-    gesture LM checkpoint ships (set DASHBOARD_TEST_REAL_GESTURE=1 to use the configured one)."""
-    gesture = [] if os.environ.get("DASHBOARD_TEST_REAL_GESTURE") else [
+    """The real stages: dialogue (VAD, ASR, responder, TTS), gesture (when the configured checkpoints are on
+    disk; else the test stage) and renderer."""
+    root = Path(__file__).resolve().parents[1]
+    lm = load_app_config(root / "configs" / "default.yaml").gesture.lm_checkpoint
+    gesture = [] if lm is not None and (root / lm).exists() else [
         "--set", "run.components.gesture=tests.components:wave_gesture"]
     report = tmp_path / "run"
-    root = Path(__file__).resolve().parents[1]
     cmd = [sys.executable, str(root / "launch.py"), "--replay", str(REAL_CLIP), "--report", str(report),
            "--set", "dashboard.port=0", "--set", "dashboard.wait_for_start=true", *gesture]
     proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
