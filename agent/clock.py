@@ -35,4 +35,5 @@ class ClockSync:
                 for stage, (rtt, offset) in self._best.items()}
 
     def offsets_ns(self) -> dict[str, int]:
-        return {stage: offset for stage, (_, offset) in self._best.items()}
+        """The offsets to subtract; one within its own uncertainty is taken as zero (e.g. one host's clock)."""
+        return {stage: offset if abs(offset) > max(0, rtt) // 2 else 0 for stage, (rtt, offset) in self._best.items()}

@@ -61,9 +61,9 @@ def load_factory(path: str) -> Callable[..., Any]:
 
 def stage_main(launch: StageLaunch) -> None:
     """Run one stage until STOP, SIGTERM or the end of the stream."""
-    _die_with_parent()
+    die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the supervisor decides
-    _redirect_output(launch.log_path)
+    redirect_output(launch.log_path)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s {launch.stage} %(levelname)s %(name)s: %(message)s")
     limit_threads()
@@ -87,7 +87,7 @@ def _split(made: Any) -> tuple[Any, Any]:
     return made if isinstance(made, tuple) else (made, None)
 
 
-def _die_with_parent() -> None:
+def die_with_parent() -> None:
     """Linux: get SIGTERM when the supervisor dies, so no stage is ever orphaned."""
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -95,7 +95,7 @@ def _die_with_parent() -> None:
         pass
 
 
-def _redirect_output(path: Path) -> None:
+def redirect_output(path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(fd, 1)

@@ -186,11 +186,11 @@ def page_url(host: str, port: int, tls: bool = False) -> str:
 
 def dashboard_main(launch: DashboardLaunch) -> None:
     """The process entry point (multiprocessing spawn target)."""
-    from agent.process import _die_with_parent, _redirect_output, limit_threads
+    from agent.process import die_with_parent, redirect_output, limit_threads
 
-    _die_with_parent()
+    die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group; the supervisor decides
-    _redirect_output(launch.log_path)
+    redirect_output(launch.log_path)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s dashboard %(levelname)s %(name)s: %(message)s")
     limit_threads()
