@@ -414,7 +414,7 @@ async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, flo
         await page.wait_for("window.dashboard && window.dashboard.phase === 'ready'", timeout_s=90)
         assert await page.evaluate("document.getElementById('start').disabled") is False
         await page.evaluate("document.getElementById('start').click()")
-        await page.wait_for("window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2", timeout_s=30)
+        await page.wait_for("window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2 && window.dashboard.words >= 4", timeout_s=30)
         state = await page.evaluate(PAGE_STATE)
         await page.wait_for(f"window.dashboard.chartLastStep > {state['chartLastStep'] + 3}", timeout_s=20)
         later = await page.evaluate(PAGE_STATE)
