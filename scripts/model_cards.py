@@ -1,6 +1,6 @@
 """Write the model cards of the shipped codecs and gesture LM from a training run's records.
 
-    python scripts/model_cards.py WORK SHIP    (scripts/train_default.sh calls it; WORK=runs/default, SHIP=checkpoints)
+    python scripts/model_cards.py WORK SHIP [SYNTHETIC]   (scripts/train_default.sh calls it)
 """
 import json
 import sys
@@ -9,10 +9,11 @@ from pathlib import Path
 import yaml
 
 W, S = Path(sys.argv[1]), Path(sys.argv[2])
+SYNTHETIC = Path(sys.argv[3]) if len(sys.argv) > 3 else W / "synthetic"
 CODEC = yaml.safe_load(Path("configs/codec/default_small.yaml").read_text())["train"]
 LM = yaml.safe_load(Path("configs/lm/default_small.yaml").read_text())["train"]
 times = dict(l.split('\t') for l in (W / 'wall_times.tsv').read_text().splitlines())
-gen = json.loads((W / 'synthetic' / 'generation.json').read_text())
+gen = json.loads((SYNTHETIC / 'generation.json').read_text())
 rows = []
 for r in ('upper', 'lower', 'face'):
     d = json.loads((W / f'codec_{r}.json').read_text())

@@ -97,6 +97,6 @@ timed tokenize "$PY" -m gesture.data.tokenize --root "$WORK/data" --codecs "$WOR
 timed lm "${NICE[@]}" "$PY" -m gesture.train_lm --config "$LM_CONFIG" --data "$WORK/lm_data" \
   --codecs "$WORK/codecs" --out "$WORK/lm" --no-progress ${LM_EPOCHS:+--epochs "$LM_EPOCHS"}
 timed ship ship
-"$PY" scripts/model_cards.py "$WORK" "$SHIP"
+"$PY" scripts/model_cards.py "$WORK" "$SHIP" "$SYNTHETIC"
 du -sh "$SHIP"/* >&2
 cat "$TIMES"
