@@ -109,3 +109,17 @@ class UserListener:
             self._turn_end_s = event.t_s
             if self.asr is not None:
                 self.asr.finish()
+
+
+class ListeningBackend:
+    """The step clock shared by the backends that hear the user through a `UserListener`."""
+
+    listener: UserListener
+    _step_index: int
+    _last_agent_pcm: "np.ndarray | None"
+
+    def skip(self, n_steps: int) -> None:
+        """Live mode dropped n_steps of input: advance the clocks so the transcript's times stay true."""
+        self._step_index += n_steps
+        self.listener.skip(n_steps * STEP_S)
+        self._last_agent_pcm = None

@@ -13,7 +13,7 @@ import numpy as np
 from agent.messages import DialogueStep, VadState
 from agent.timing import STEP_SAMPLES
 from dialogue.config import DialogueConfig
-from dialogue.listener import STEP_S, Heard, UserListener
+from dialogue.listener import Heard, ListeningBackend, STEP_S, UserListener
 from dialogue.responder import Reply, Responder, build_responder
 from dialogue.speaker import Speaker, SpokenStep
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, StreamingSpeechEncoder
@@ -41,7 +41,7 @@ def user_turn_from(heard: Heard, transcript: Transcript) -> Turn:
     return transcript.add(Turn("user", start, end, words, text=" ".join(w.word for w in words)))
 
 
-class LocalBackend:
+class LocalBackend(ListeningBackend):
     spec = LOCAL_SPEC
 
     def __init__(self, listener: UserListener, tts: EspeakTts, responder: Responder, tokenizer: SpeechTokenizer,
@@ -85,12 +85,6 @@ class LocalBackend:
         self._barged_in = False  # the current user turn cut the agent: answer it
         self._awaiting_answer_since_s: float | None = None  # end of the user speech being answered
         self.response_latencies_s: list[float] = []  # end of user speech -> first agent audio can play
-
-    def skip(self, n_steps: int) -> None:
-        """Live mode dropped n_steps of input: advance the clocks so the transcript's times stay true."""
-        self._step_index += n_steps
-        self.listener.skip(n_steps * STEP_S)
-        self._last_agent_pcm = None
 
     def close(self) -> None:
         if self._reply is not None:

@@ -15,7 +15,7 @@ import torch
 from agent.messages import DialogueStep
 from agent.spec import ConditionSpec
 from dialogue.config import DialogueConfig, MoshiConfig
-from dialogue.listener import STEP_S, UserListener
+from dialogue.listener import ListeningBackend, STEP_S, UserListener
 from dialogue.local_backend import check_user_pcm, user_turn_from
 from dialogue.transcript import Transcript, Turn, Word
 
@@ -56,7 +56,7 @@ def _read_json(path: str | None) -> dict | None:
     return None if path is None else json.loads(Path(path).read_text())
 
 
-class MoshiBackend:
+class MoshiBackend(ListeningBackend):
     def __init__(self, mimi, lm, text_tokenizer, listener: UserListener, temp: float, temp_text: float, top_k: int,
                  top_k_text: int, cfg_coef: float, device: str = "cpu"):
         from moshi.models import LMGen
@@ -107,12 +107,6 @@ class MoshiBackend:
         self._agent_turn: Turn | None = None
         self._last_text_s = 0.0
         self._last_agent_pcm: np.ndarray | None = None
-
-    def skip(self, n_steps: int) -> None:
-        """Live mode dropped n_steps of input: advance the clocks so the transcript's times stay true."""
-        self._step_index += n_steps
-        self.listener.skip(n_steps * STEP_S)
-        self._last_agent_pcm = None
 
     def close(self) -> None:
         pass

@@ -14,7 +14,7 @@ from agent.messages import DialogueStep
 from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.alignment import recognize, words_from_transcript
 from dialogue.config import DialogueConfig
-from dialogue.listener import STEP_S, UserListener
+from dialogue.listener import ListeningBackend, STEP_S, UserListener
 from dialogue.local_backend import check_user_pcm, load_speech_tokenizer, user_turn_from
 from dialogue.speaker import Speaker
 from dialogue.speech_tokenizer import SpeechTokenizer, StreamingSpeechEncoder
@@ -34,7 +34,7 @@ def recording_utterance(path: str, transcript: str | None) -> Utterance:
     return Utterance(text=" ".join(w.word for w in words), pcm=pcm, words=timings)
 
 
-class PlaybackBackend:
+class PlaybackBackend(ListeningBackend):
     spec = LOCAL_SPEC
 
     def __init__(self, utterance: Utterance, listener: UserListener, tokenizer: SpeechTokenizer, start_s: float = 0.0):
@@ -61,12 +61,6 @@ class PlaybackBackend:
         self._step_index = 0
         self._started = False
         self._last_agent_pcm: np.ndarray | None = None
-
-    def skip(self, n_steps: int) -> None:
-        """Live mode dropped n_steps of input: advance the clocks so the transcript's times stay true."""
-        self._step_index += n_steps
-        self.listener.skip(n_steps * STEP_S)
-        self._last_agent_pcm = None
 
     def close(self) -> None:
         pass
