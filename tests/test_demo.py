@@ -44,3 +44,17 @@ def test_demo_listens_answers_and_gestures(tmp_path):
     agent_start = int(agent[0]["start_s"] * 25)
     audio = info["audio"].mean(axis=0)
     assert np.abs(audio[agent_start * 960:(agent_start + 50) * 960]).max() > 0.05  # the answer is heard
+
+
+@needs_osmesa
+def test_offline_runs_are_byte_identical_with_the_same_seed(tmp_path):
+    """The whole loop, real stages: same recording and seed → the same MP4, byte for byte."""
+    videos = []
+    for run in ("a", "b"):
+        out = tmp_path / f"{run}.mp4"
+        proc = subprocess.run([sys.executable, "launch.py", "--headless", "--seed", "3", "--mp4", str(out),
+                               "--report", str(tmp_path / run), "--set", "render.size=96"],
+                              cwd=ROOT, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        videos.append(out.read_bytes())
+    assert videos[0] == videos[1]
