@@ -58,3 +58,19 @@ def test_offline_runs_are_byte_identical_with_the_same_seed(tmp_path):
         assert proc.returncode == 0, proc.stdout + proc.stderr
         videos.append(out.read_bytes())
     assert videos[0] == videos[1]
+
+
+def test_speak_mode_makes_the_agent_say_a_recording(tmp_path):
+    """`--speak`: the playback backend speaks the file with its transcript; the user side is silence."""
+    proc = subprocess.run([sys.executable, "launch.py", "--speak", "assets/examples/librivox_0870.wav", "--headless",
+                           "--report", str(tmp_path),
+                           "--set", "dialogue.playback.transcript=assets/examples/librivox_0870.txt",
+                           "--set", "run.components.render=tests.components:recorder"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    turns = json.loads((tmp_path / "transcript.json").read_text())["turns"]
+    agent_words = [w["word"].lower() for t in turns if t["speaker"] == "agent" for w in t["words"]]
+    assert "dashwood" in agent_words and not [t for t in turns if t["speaker"] == "user"]
+    steps = [json.loads(line)["step"] for line in (tmp_path / "received.jsonl").read_text().splitlines()
+             if json.loads(line)["topic"] == "gesture.step"]
+    assert steps == list(range(len(steps))) and len(steps) * 0.08 > 7.1  # the whole recording was gestured
