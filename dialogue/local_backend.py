@@ -30,6 +30,16 @@ def check_user_pcm(user_pcm: np.ndarray) -> np.ndarray:
     return np.nan_to_num(pcm, nan=0.0, posinf=1.0, neginf=-1.0)
 
 
+def step_message(user_pcm: np.ndarray, heard: Heard, spoken: SpokenStep, agent_codes: StreamingSpeechEncoder,
+                 user_codes: StreamingSpeechEncoder, user_words: str) -> DialogueStep:
+    """The step's message: both voices, their speech codes, the agent's text token, what was heard."""
+    return DialogueStep(
+        agent_pcm=spoken.pcm, user_pcm=user_pcm, agent_codes=agent_codes.step(spoken.pcm),
+        user_codes=user_codes.step(user_pcm), text_token=spoken.text_token, text_piece=spoken.text_piece,
+        user_vad_prob=heard.vad_prob, user_vad_state=heard.vad_state, agent_speaking=spoken.speaking,
+        user_partial=heard.partial, user_words=user_words, agent_interrupted=spoken.interrupted)
+
+
 def load_speech_tokenizer(path: str | None) -> SpeechTokenizer:
     return SpeechTokenizer.load(Path(path) if path else DEFAULT_CHECKPOINT)
 
@@ -104,11 +114,7 @@ class LocalBackend(ListeningBackend):
             self._awaiting_answer_since_s = None
         self._last_agent_pcm = spoken.pcm
         self._step_index += 1
-        return DialogueStep(
-            agent_pcm=spoken.pcm, user_pcm=user_pcm, agent_codes=self.agent_codes.step(spoken.pcm),
-            user_codes=self.user_codes.step(user_pcm), text_token=spoken.text_token, text_piece=spoken.text_piece,
-            user_vad_prob=heard.vad_prob, user_vad_state=heard.vad_state, agent_speaking=spoken.speaking,
-            user_partial=heard.partial, user_words=user_words, agent_interrupted=spoken.interrupted)
+        return step_message(user_pcm, heard, spoken, self.agent_codes, self.user_codes, user_words)
 
     def _take_user_turn(self, heard: Heard) -> str:
         """Record a finished user turn; answer it unless it was a short overlap with the agent talking."""

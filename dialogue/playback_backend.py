@@ -15,7 +15,7 @@ from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.alignment import recognize, words_from_transcript
 from dialogue.config import DialogueConfig
 from dialogue.listener import ListeningBackend, STEP_S, UserListener
-from dialogue.local_backend import check_user_pcm, load_speech_tokenizer, user_turn_from
+from dialogue.local_backend import check_user_pcm, load_speech_tokenizer, step_message, user_turn_from
 from dialogue.speaker import Speaker
 from dialogue.speech_tokenizer import SpeechTokenizer, StreamingSpeechEncoder
 from dialogue.text_vocab import LOCAL_SPEC
@@ -77,9 +77,5 @@ class PlaybackBackend(ListeningBackend):
         spoken = self.speaker.step(t_s)
         self._last_agent_pcm = spoken.pcm
         self._step_index += 1
-        return DialogueStep(
-            agent_pcm=spoken.pcm, user_pcm=user_pcm, agent_codes=self.agent_codes.step(spoken.pcm),
-            user_codes=self.user_codes.step(user_pcm), text_token=spoken.text_token, text_piece=spoken.text_piece,
-            user_vad_prob=heard.vad_prob, user_vad_state=heard.vad_state, agent_speaking=spoken.speaking,
-            user_partial=heard.partial, user_words=" ".join(w.word for w in heard.final_words or []),
-            agent_interrupted=False)
+        user_words = " ".join(w.word for w in heard.final_words or [])
+        return step_message(user_pcm, heard, spoken, self.agent_codes, self.user_codes, user_words)
