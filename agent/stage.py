@@ -118,8 +118,8 @@ class StageRunner:
                              lossless=not run.live)
         topics = ["control", *set(topology.data_inputs.values())]
         addresses = [stage_address(peer, self.bus, ipc_dir) for peer in sorted(topology.peers)]
-        self.sub = Subscriber(self.ctx, addresses, topics,
-                              live_queue=self.bus.live_queue_steps * 2 if run.live else None)
+        queue = self.bus.live_queue_steps * max(1, len(topology.data_inputs))  # steps of every input topic
+        self.sub = Subscriber(self.ctx, addresses, topics, live_queue=queue if run.live else None)
         self.state = StageState.STARTING
         self.heard: set[str] = set()
         self.eos_from: set[str] = set()
