@@ -107,10 +107,7 @@ def with_dialogue_spec(app: AppConfig) -> AppConfig:
     if app.gesture.dialogue_spec is not None or "dialogue" in app.run.components:
         return app
     from dialogue.backend import condition_spec
-    from gesture.config import ConditionSpecConfig
-
-    spec = ConditionSpecConfig(**condition_spec(app.dialogue).to_dict())
-    return replace(app, gesture=replace(app.gesture, dialogue_spec=spec))
+    return replace(app, gesture=replace(app.gesture, dialogue_spec=condition_spec(app.dialogue)))
 
 
 def check_inputs(app: AppConfig) -> None:

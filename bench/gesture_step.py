@@ -39,7 +39,7 @@ def build_size(name: str) -> tuple[GestureLM, dict]:
         lm, codec_cfg = GestureLM(LMConfig(), MOSHI_SPEC), CodecConfig()
     else:
         file_cfg = build_dataclass(LMFileConfig, load_yaml("configs/lm/small.yaml"))
-        lm = GestureLM(file_cfg.lm, ConditionSpec(**vars(file_cfg.condition)))
+        lm = GestureLM(file_cfg.lm, file_cfg.condition)
         codec_cfg = load_codec_config("configs/codec/small.yaml").codec
     return lm.eval(), {region: build_codec(codec_cfg, region).eval() for region in REGIONS}
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Literal, Optional
 
 from agent.config import ConfigError
+from agent.spec import MOSHI_SPEC, ConditionSpec
 
 N_UPPER_LEVELS = 8
 N_LOWER_LEVELS = 8
@@ -97,17 +98,6 @@ class IdleGateConfig:
 
 
 @dataclass(frozen=True)
-class ConditionSpecConfig:
-    """The conditioning vocabulary the dialogue backend emits (filled in by the launcher from the backend)."""
-
-    name: str
-    text_vocab: int
-    audio_card: int
-    embed_dim: int
-    n_audio_codebooks: int = 8
-
-
-@dataclass(frozen=True)
 class GestureConfig:
     """The `gesture:` section: checkpoints, sampling, classifier-free guidance, idle gate, speaker."""
 
@@ -123,7 +113,7 @@ class GestureConfig:
     dtype: Literal["float32", "bfloat16"] = "bfloat16"
     warmup_steps: int = 4  # silent steps run at start-up, then the state is reset
     initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0)
-    dialogue_spec: Optional[ConditionSpecConfig] = None  # checked against the LM checkpoint's spec at start-up
+    dialogue_spec: Optional[ConditionSpec] = None  # checked against the LM checkpoint's spec at start-up
     idle: IdleGateConfig = field(default_factory=IdleGateConfig)
 
     def __post_init__(self) -> None:
@@ -191,6 +181,5 @@ class LMFileConfig:
     """A configs/lm/*.yaml file: model sizes, the conditioning vocabulary, and the training recipe."""
 
     lm: LMConfig = field(default_factory=LMConfig)
-    condition: ConditionSpecConfig = field(default_factory=lambda: ConditionSpecConfig(
-        name="moshi", text_vocab=32001, audio_card=2049, embed_dim=4096))
+    condition: ConditionSpec = MOSHI_SPEC
     train: LMTrainConfig = field(default_factory=LMTrainConfig)

@@ -17,7 +17,6 @@ import torch
 
 from agent.config import ConfigError
 from agent.messages import DialogueStep, GestureStep, Message
-from agent.spec import ConditionSpec
 from agent.stage import RunContext
 from agent.timing import STEP_SAMPLES
 from gesture.config import GestureConfig
@@ -82,7 +81,7 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
         raise ConfigError("gesture.lm_checkpoint: required (a directory written by python -m gesture.train_lm)")
     if cfg.codec_checkpoints is None:
         raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
-    expected = ConditionSpec(**vars(cfg.dialogue_spec)) if cfg.dialogue_spec is not None else None
+    expected = cfg.dialogue_spec
     lm = load_lm(cfg.lm_checkpoint, expected)
     codecs = load_codecs(cfg.codec_checkpoints)
     idle = None

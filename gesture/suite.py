@@ -39,7 +39,7 @@ from agent.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, S
 from gesture import metrics as M  # noqa: E402
 from gesture.codec.evaluation import reconstruct  # noqa: E402
 from gesture.codec.model import GestureCodec  # noqa: E402
-from gesture.config import ConditionSpecConfig, GestureConfig  # noqa: E402
+from gesture.config import GestureConfig  # noqa: E402
 from gesture.data.audio import load_audio  # noqa: E402
 from gesture.data.beat2 import Take, find_takes, read_motion  # noqa: E402
 from gesture.data.chunks import motion_at_fps  # noqa: E402
@@ -103,7 +103,7 @@ def default_gesture_config(config_path: Path) -> tuple[GestureConfig, object]:
         gesture = dataclasses.replace(gesture, lm_checkpoint=REPO / DEFAULT_LM)
     if gesture.codec_checkpoints is None:
         gesture = dataclasses.replace(gesture, codec_checkpoints=REPO / DEFAULT_CODECS)
-    return dataclasses.replace(gesture, dialogue_spec=ConditionSpecConfig(**LOCAL_SPEC.to_dict())), app.dialogue
+    return dataclasses.replace(gesture, dialogue_spec=LOCAL_SPEC), app.dialogue
 
 
 def run_generator(generator: GestureGenerator, text: np.ndarray, audio: np.ndarray,

@@ -21,7 +21,6 @@ from typing import Optional
 import torch
 
 from agent.config import build_dataclass, load_yaml
-from agent.spec import ConditionSpec
 from gesture.config import LMConfig, LMFileConfig, LMTrainConfig
 from gesture.lm.checkpoint import load_lm, load_train_state, save_lm, save_train_state
 from gesture.lm.data import LMBatch, LMDataset
@@ -87,7 +86,7 @@ def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Opt
     from tqdm import tqdm
 
     cfg = file_cfg.train
-    spec = ConditionSpec(**vars(file_cfg.condition))
+    spec = file_cfg.condition
     epochs = cfg.epochs if epochs is None else epochs
     rank, world, device = _distributed()
     torch.manual_seed(cfg.seed)

@@ -17,7 +17,6 @@ from agent.messages import AudioUser, GestureStep  # noqa: E402
 from agent.sections import load_app_config  # noqa: E402
 from agent.stage import RunContext  # noqa: E402
 from dialogue.process import create_component as create_dialogue  # noqa: E402
-from gesture.config import ConditionSpecConfig  # noqa: E402
 from gesture.process import create_component as create_gesture  # noqa: E402
 from gesture.convert_miburi import convert_release  # noqa: E402
 from gesture.release.synthetic import ReferenceSizes, write_experiment  # noqa: E402
@@ -73,7 +72,7 @@ def test_moshi_steps_drive_the_converted_release(tiny_release, tiny_moshi_files,
     app = load_app_config(CONFIG, _overrides(tiny_moshi_files, tiny_release))
     run = RunContext(tmp_path, False, 0, "s")
     dialogue = create_dialogue(app.dialogue, run)
-    spec = ConditionSpecConfig(**dialogue.spec.to_dict())  # what the launcher passes on
+    spec = dialogue.spec  # what the launcher passes on
     gesture = create_gesture(dataclasses.replace(app.gesture, dialogue_spec=spec), run)
     rng = np.random.default_rng(0)
     outputs = []

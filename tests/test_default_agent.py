@@ -17,7 +17,6 @@ from agent.sections import load_app_config
 from agent.timing import SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer
 from dialogue.text_vocab import LOCAL_SPEC, word_token
-from gesture.config import ConditionSpecConfig
 from gesture.data.audio import load_audio
 from gesture.data.beat2 import Word, find_takes
 from gesture.data.tokenize import (agent_words, place_words, tokenize_directory, tokenize_take, vad_from_frames,
@@ -41,7 +40,7 @@ def generator():
     assert cfg.lm_checkpoint is not None and cfg.codec_checkpoints is not None, "configs/default.yaml: gesture paths"
     import dataclasses
 
-    cfg = dataclasses.replace(cfg, dialogue_spec=ConditionSpecConfig(**LOCAL_SPEC.to_dict()))
+    cfg = dataclasses.replace(cfg, dialogue_spec=LOCAL_SPEC)
     old = os.getcwd()
     os.chdir(REPO)  # config paths are relative to the project root, as launch.py runs
     try:

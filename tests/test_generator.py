@@ -147,7 +147,6 @@ def test_soak_memory_stays_flat():
     import resource
 
     from agent.config import build_dataclass, load_yaml
-    from agent.spec import ConditionSpec
     from gesture.codec.build import build_codec
     from gesture.codec.config import load_codec_config
     from gesture.config import LMFileConfig
@@ -155,7 +154,7 @@ def test_soak_memory_stays_flat():
 
     steps = int(os.environ.get("GESTURE_SOAK_STEPS", 45_000))
     cfg = build_dataclass(LMFileConfig, load_yaml("configs/lm/small.yaml"))
-    lm = GestureLM(cfg.lm, ConditionSpec(**vars(cfg.condition))).eval()
+    lm = GestureLM(cfg.lm, cfg.condition).eval()
     codec_cfg = load_codec_config("configs/codec/small.yaml").codec
     gen = GestureGenerator(lm, {r: build_codec(codec_cfg, r).eval() for r in ("upper", "lower", "face")})
     rng = np.random.default_rng(0)

@@ -13,7 +13,7 @@ from agent.spec import MOSHI_SPEC, SpecMismatchError
 from agent.stage import RunContext
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
-from gesture.config import ConditionSpecConfig, GestureConfig
+from gesture.config import GestureConfig
 from gesture.lm.checkpoint import save_lm
 from gesture.lm.fixtures import TINY_SPEC, tiny_codec_config, tiny_codecs, tiny_lm
 from gesture.process import create_component
@@ -33,7 +33,7 @@ def checkpoints(tmp_path_factory):
 
 def _config(root, spec=TINY_SPEC, **kw):
     return GestureConfig(lm_checkpoint=root / "lm", codec_checkpoints=root / "codecs", dtype="float32",
-                         warmup_steps=2, dialogue_spec=ConditionSpecConfig(**spec.to_dict()), **kw)
+                         warmup_steps=2, dialogue_spec=spec, **kw)
 
 
 def _dialogue_step(session, step, text=3):

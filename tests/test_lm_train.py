@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from agent.config import ConfigError
-from gesture.config import ConditionSpecConfig, LMFileConfig, LMTrainConfig
+from gesture.config import LMFileConfig, LMTrainConfig
 from gesture.lm.data import LMDataset, write_recording, write_spec
 from gesture.lm.fixtures import TINY_SPEC, tiny_lm_config
 from gesture.lm.losses import level_weights, segment_info_nce, token_ce
@@ -86,7 +86,7 @@ def _dataset(tmp_path, steps=60, n=3, spec=TINY_SPEC):
 def _tiny_file_config(**train):
     base = dict(batch_size=4, window_steps=24, epochs=4, steps_per_epoch=5, warmup_epochs=1, cond_drop_end_epoch=2,
                 pad_start_epoch=2, pad_full_epoch=3, tau_epochs=1, lr=3e-3, checkpoint_every_epochs=2)
-    return LMFileConfig(lm=tiny_lm_config(), condition=ConditionSpecConfig(**TINY_SPEC.to_dict()),
+    return LMFileConfig(lm=tiny_lm_config(), condition=TINY_SPEC,
                         train=LMTrainConfig(**{**base, **train}))
 
 
