@@ -2,6 +2,11 @@
 
     python -m gesture.train_codec --config configs/codec/small.yaml --region upper \
         [--data ../shared/data/beat2/2_scott_0_1_1.npz] [--steps N] [--out DIR] [--resume]
+        [--finetune-decoder TRAINED_DIR]
+
+`--finetune-decoder` starts from a trained codec and trains only its decoder half (transformer_decoder and
+seanet_decoder) on the codes of the frozen encoder and quantizer: the codes of every clip stay exactly what they
+were, so a language model trained on them stays valid, while the reconstruction from those codes improves.
 
 Runs unchanged under torchrun (DDP: gloo on CPU, nccl on GPU; each rank draws its own batches).
 Writes DIR/model.safetensors + config.yaml (loadable by gesture.codec.checkpoint.load_codec),
@@ -67,7 +72,7 @@ class CodecTrainer:
     """Holds the codec, optimiser, schedule and history of one region's training run."""
 
     def __init__(self, config: CodecFileConfig, region: str, data: Path, out: Path, skeleton: Skeleton,
-                 device: torch.device = torch.device("cpu")) -> None:
+                 device: torch.device = torch.device("cpu"), finetune_from: Path | None = None) -> None:
         self.config, self.region, self.out, self.skeleton, self.device = config, region, out, skeleton, device
         train = config.train
         self.rank = dist.get_rank() if dist.is_initialized() else 0
@@ -75,18 +80,28 @@ class CodecTrainer:
         self.generator = torch.Generator().manual_seed(train.seed + self.rank)  # different batches per rank
         self.train_data, self.heldout_data = load_motion_splits(data, train.holdout_seconds)
         self.codec: GestureCodec = build_codec(config.codec, region).to(device)
+        self.frozen: tuple[torch.nn.Module, ...] = ()
+        if finetune_from is not None:
+            self._load_weights(finetune_from)
+            self.frozen = (self.codec.seanet_encoder, self.codec.transformer_encoder, self.codec.quantizer)
+            for module in self.frozen:
+                module.requires_grad_(False)
         # codebook buffers are kept in sync by the codebooks themselves (gesture.codec.quantizer)
         self.model = DDP(self.codec, broadcast_buffers=False) if dist.is_initialized() else self.codec
         self.loss = RegionLoss(region, skeleton).to(device)
-        self.optimizer = torch.optim.AdamW(self.codec.parameters(), lr=train.lr, weight_decay=train.weight_decay)
+        trained = [p for p in self.codec.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(trained, lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
         self.step = 0
         self.history: dict = {"step": [], "loss": [], "eval": []}
 
-    def resume(self) -> None:
+    def _load_weights(self, directory: Path) -> None:
         from safetensors.torch import load_file
 
-        self.codec.load_state_dict(load_file(str(self.out / MODEL_FILE), device=str(self.device)), strict=True)
+        self.codec.load_state_dict(load_file(str(directory / MODEL_FILE), device=str(self.device)), strict=True)
+
+    def resume(self) -> None:
+        self._load_weights(self.out)
         state = load_optimizer(self.out, self.optimizer)
         self.step, self.history = state["step"], state["history"]
         self.scheduler.load_state_dict(state["scheduler"])
@@ -105,6 +120,8 @@ class CodecTrainer:
     def train_step(self) -> float:
         train = self.config.train
         self.codec.train()
+        for module in self.frozen:  # frozen halves keep their codebooks: no EMA, dropout or skipped quantization
+            module.eval()
         batch = sample_batch(self.train_data, self.region, train.batch_size, train.window_frames,
                              train.random_crop_rate, self.generator).to(self.device)  # (B, L, nfeats)
         out = self.model(batch)
@@ -113,7 +130,7 @@ class CodecTrainer:
         loss = terms["total"] + weight * out.commitment_loss
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.codec.parameters(), train.grad_clip)
+        torch.nn.utils.clip_grad_norm_([p for p in self.codec.parameters() if p.requires_grad], train.grad_clip)
         self.optimizer.step()
         self.scheduler.step()
         self.step += 1
@@ -152,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, help="total steps (default: train.steps of the config)")
     parser.add_argument("--out", type=Path, help="checkpoint directory (default: runs/codec_<region>)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
+    parser.add_argument("--finetune-decoder", type=Path, metavar="TRAINED_DIR",
+                        help="start from this trained codec and train only its decoder (the codes stay fixed)")
     parser.add_argument("--smplx-model", type=Path, help="a real SMPL-X model file for the FK joints")
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     args = parser.parse_args(argv)
@@ -165,9 +184,11 @@ def main(argv: list[str] | None = None) -> int:
     skeleton = Skeleton.from_smplx_model(args.smplx_model) if args.smplx_model else Skeleton.default()
     if args.resume and not (out / MODEL_FILE).is_file():
         parser.error(f"--resume: no checkpoint in {out}")
+    if args.finetune_decoder and not (args.finetune_decoder / MODEL_FILE).is_file():
+        parser.error(f"--finetune-decoder: no checkpoint in {args.finetune_decoder}")
     device = _start_distributed(torch.device(args.device))
     try:
-        trainer = CodecTrainer(config, args.region, args.data, out, skeleton, device)
+        trainer = CodecTrainer(config, args.region, args.data, out, skeleton, device, args.finetune_decoder)
         _run(trainer, steps, args.resume)
     finally:
         if dist.is_initialized():

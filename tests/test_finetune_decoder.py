@@ -1,0 +1,63 @@
+"""`python -m gesture.train_codec --finetune-decoder DIR`: only the decoder half learns, so the codes stay fixed."""
+
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from safetensors.torch import load_file
+
+from gesture.codec.checkpoint import MODEL_FILE, load_codec
+from gesture.codec.data import load_motion_splits, sample_batch
+from gesture.train_codec import main
+
+torch.set_num_threads(1)
+CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+TINY_YAML = {
+    "codec": {"latent_dim": 32, "n_filters": 16, "dim_feedforward": 64, "codebook_size": 32, "codebook_dim": 8,
+              "kmeans_iters": 3, "dropout": 0.0,
+              "regions": {"upper": {"n_q": 2, "num_layers": 1, "num_heads": 2},
+                          "lower": {"n_q": 2, "num_layers": 1, "num_heads": 2},
+                          "face": {"n_q": 2, "num_layers": 1, "num_heads": 2}}},
+    "train": {"batch_size": 2, "window_frames": 16, "lr": 1e-3, "steps": 4, "checkpoint_every": 4},
+}
+DECODER_HALF = ("transformer_decoder.", "seanet_decoder.")
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("finetune")
+    config = root / "tiny.yaml"
+    config.write_text(yaml.safe_dump(TINY_YAML))
+    base, tuned = root / "base", root / "tuned"
+    common = ["--config", str(config), "--region", "upper", "--data", str(CLIP)]
+    assert main(common + ["--out", str(base)]) == 0
+    assert main(common + ["--out", str(tuned), "--steps", "6", "--finetune-decoder", str(base)]) == 0
+    return base, tuned
+
+
+def test_only_the_decoder_half_changes(trained):
+    base, tuned = (load_file(str(d / MODEL_FILE)) for d in trained)
+    changed = {k for k in base if not torch.equal(base[k], tuned[k])}
+    assert changed, "the decoder did not learn"
+    assert all(k.startswith(DECODER_HALF) for k in changed), sorted(changed)
+    assert any(k.startswith("seanet_decoder.") for k in changed) and any(
+        k.startswith("transformer_decoder.") for k in changed)
+
+
+def test_codes_of_real_motion_are_unchanged(trained):
+    base, tuned = (load_codec(d) for d in trained)
+    clips, _ = load_motion_splits(CLIP, 10.0)
+    frames = sample_batch(clips, "upper", 2, 32, 0.0, torch.Generator().manual_seed(0))  # (2, 32, nfeats)
+    with torch.no_grad():
+        assert torch.equal(base.encode(frames), tuned.encode(frames))
+        assert not torch.equal(base.decode(base.encode(frames)), tuned.decode(tuned.encode(frames)))
+
+
+def test_a_missing_trained_codec_is_a_clear_error(tmp_path, capsys):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(yaml.safe_dump(TINY_YAML))
+    with pytest.raises(SystemExit):
+        main(["--config", str(config), "--region", "upper", "--data", str(CLIP), "--out", str(tmp_path / "o"),
+              "--finetune-decoder", str(tmp_path / "nowhere")])
+    assert "--finetune-decoder: no checkpoint in" in capsys.readouterr().err
