@@ -175,6 +175,15 @@ class ResidualVectorQuantizer(nn.Module):
         self.vq = _ResidualVQ(n_q, dim=codebook_dim, codebook_size=codebook_size, decay=ema_decay,
                               kmeans_iters=kmeans_iters, dead_code_every_steps=dead_code_every_steps,
                               dead_code_usage_ratio=dead_code_usage_ratio)
+        self._projected: tuple[torch.Tensor, torch.Tensor] | None = None  # see project_codebooks
+
+    @torch.no_grad()
+    def project_codebooks(self) -> None:
+        """For a frozen inference copy: store output_proj of every code vector, so `decode` becomes one
+        gather and a sum. The table does not follow later changes of the codebooks or of output_proj."""
+        table = torch.cat([F.linear(cb.embedding, self.output_proj.weight[..., 0]) for cb in self._codebooks()])
+        offsets = torch.arange(self.n_q, device=table.device) * self.codebook_size
+        self._projected = (table, offsets)  # (n_q * N, D), (n_q,)
 
     def _codebooks(self) -> list[EuclideanCodebook]:
         return [layer._codebook for layer in self.vq.layers]
@@ -217,5 +226,9 @@ class ResidualVectorQuantizer(nn.Module):
         """codes (B, K <= n_q, S) -> latents (B, D, S): sum of the first K levels' vectors."""
         if codes.dim() != 3 or codes.shape[1] > self.n_q:
             raise ValueError(f"codes must be (B, K<={self.n_q}, S), got {tuple(codes.shape)}")
+        if self._projected is not None:
+            table, offsets = self._projected
+            rows = codes + offsets[:codes.shape[1], None]  # (B, K, S) rows of the stacked levels
+            return F.embedding(rows, table).sum(1).transpose(1, 2)  # (B, K, S, D) -> (B, D, S)
         summed = sum(cb.decode(codes[:, k]) for k, cb in enumerate(self._codebooks()[:codes.shape[1]]))  # (B, S, Dq)
         return F.linear(summed, self.output_proj.weight[..., 0]).transpose(1, 2)  # the 1x1 conv as a matmul

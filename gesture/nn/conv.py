@@ -8,6 +8,8 @@ transposed conv, axis 0 is the *input* channel). Without weight norm the paramet
 Causality: the input is left-padded with zeros by (effective kernel - stride), offline and while
 streaming (where the padding is the initial content of the carried input tail). The transposed
 conv drops its last (kernel - stride) outputs offline; streaming, it carries them as a partial sum.
+The streaming wrappers only call their inner `conv` / `convtr` (and read `convtr.bias`), so an inference
+copy may replace those by any module computing the same unpadded conv (see gesture/codec/step_seanet.py).
 """
 
 from __future__ import annotations
@@ -190,7 +192,7 @@ class StreamingConvTranspose1d(StreamingModule[ConvTrState]):
             return y[..., :-self.overlap]
         y[..., :self.overlap] += state.partial
         tail = y[..., -self.overlap:]
-        bias = self.convtr.convtr.bias
+        bias = self.convtr.bias
         state.partial.copy_(tail if bias is None else tail - bias[:, None])
         return y[..., :-self.overlap]
 
@@ -202,6 +204,10 @@ class _NormConvTranspose1d(nn.Module):
                  weight_norm: bool) -> None:
         super().__init__()
         self.convtr = _ConvTranspose1dParams(in_channels, out_channels, kernel_size, stride, bias, weight_norm)
+
+    @property
+    def bias(self) -> torch.Tensor | None:
+        return self.convtr.bias
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.convtr(x)
