@@ -1,13 +1,20 @@
 """Streaming decode time per step (80 ms) of the three gesture codecs together, on 1 thread.
 
     python -m bench.codec --json [--steps 300] [--sizes reference small] [--dtypes float32 float16]
+                                 [--prepared float32 float16 bfloat16 int8] [--quality]
 
 For each size, builds the upper, lower and face codecs (random weights: time does not depend on
-them), opens a StreamingDecoder on each and times `step` of all three per 80 ms step. All variants
-(sizes x dtypes) and a fixed baseline workload (256x2048x256 matmuls) step in turn, interleaved,
-so they are compared under the same machine load, and a reading can be judged by the baseline.
-The step reads every decoder weight once, so it is memory-bound on CPU: float16 weights halve the
-traffic (StreamingDecoder returns float32 frames; fp16 matches fp32 to ~1e-4).
+them), opens a StreamingDecoder on each and times `step` of all three per 80 ms step. Two paths:
+`cast` (`--dtypes`: the codec as trained, cast with `codec.to(dtype)`) and `inference_codec`
+(`--prepared`: `gesture.codec.inference.inference_codec(codec, dtype)`, a copy with folded weight norm and
+LayerScales, projected codebooks, a lean step and float32/float16/bfloat16/int8 weights). All variants
+and a fixed baseline workload (256x2048x256 matmuls) step in turn, interleaved, so they are compared
+under the same machine load, and a reading can be judged by the baseline. The step reads every decoder
+weight once, so it is bound by memory traffic and by per-op overhead on CPU.
+
+`--quality` adds, for each prepared dtype, the largest feature error against the float32 offline decode
+on random codes at the reference size, and the MPJPE (mm) of the real BEAT2 clip encoded by the shipped
+codecs (checkpoints/codecs) and stream-decoded, next to the float32 decode's.
 """
 
 from __future__ import annotations
@@ -25,10 +32,16 @@ import torch  # noqa: E402
 
 from gesture.codec.build import build_codec, count_parameters  # noqa: E402
 from gesture.codec.config import REGIONS, load_codec_config  # noqa: E402
+from gesture.codec.inference import INFERENCE_DTYPES, inference_codec  # noqa: E402
 from gesture.codec.streaming import StreamingDecoder  # noqa: E402
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "codec"
+REPO = Path(__file__).resolve().parents[1]
+CONFIG_DIR = REPO / "configs" / "codec"
+SHIPPED_CODECS = REPO / "checkpoints" / "codecs"
+BEAT2_CLIP = REPO.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
 GOAL_MEDIAN_MS = 6.0
+CAST = "cast"
+PREPARED = "inference_codec"
 
 
 def _percentiles(samples_s: list[float]) -> dict[str, float]:
@@ -45,12 +58,17 @@ def _baseline_workload(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 class _Variant:
-    """The three codecs of one size and dtype, each with an open StreamingDecoder."""
+    """The three codecs of one size, path and dtype, each with an open StreamingDecoder."""
 
-    def __init__(self, size: str, dtype: torch.dtype, total_steps: int) -> None:
+    def __init__(self, size: str, path: str, dtype: str, total_steps: int) -> None:
         config = load_codec_config(CONFIG_DIR / f"{size}.yaml").codec
-        self.size, self.dtype = size, dtype
-        self.codecs = {region: build_codec(config, region).eval().to(dtype) for region in REGIONS}
+        self.size, self.path, self.dtype = size, path, dtype
+        trained = {region: build_codec(config, region).eval() for region in REGIONS}
+        self.parameters = {r: count_parameters(c) for r, c in trained.items()}
+        if path == CAST:
+            self.codecs = {r: c.to(getattr(torch, dtype)) for r, c in trained.items()}
+        else:
+            self.codecs = {r: inference_codec(c, dtype) for r, c in trained.items()}
         self.decoders = {region: StreamingDecoder(codec) for region, codec in self.codecs.items()}
         generator = torch.Generator().manual_seed(0)
         self.codes = {r: torch.randint(0, config.codebook_size, (total_steps, c.n_q, 1), generator=generator)
@@ -64,14 +82,14 @@ class _Variant:
         return time.perf_counter() - start
 
     def result(self) -> dict:
-        return {"size": self.size, "dtype": str(self.dtype).removeprefix("torch."),
-                "parameters": {r: count_parameters(c) for r, c in self.codecs.items()},
+        return {"size": self.size, "path": self.path, "dtype": self.dtype, "parameters": self.parameters,
                 "decode_step_all_three": _percentiles(self.samples_s)}
 
 
-def bench(sizes: list[str], dtypes: list[str], steps: int, warmup: int) -> dict:
+def bench(sizes: list[str], dtypes: list[str], prepared: list[str], steps: int, warmup: int) -> dict:
     """Every variant steps in turn with the baseline, so all see the same machine load."""
-    variants = [_Variant(size, getattr(torch, dtype), steps + warmup) for size in sizes for dtype in dtypes]
+    paths = [(CAST, dtype) for dtype in dtypes] + [(PREPARED, dtype) for dtype in prepared]
+    variants = [_Variant(size, path, dtype, steps + warmup) for size in sizes for path, dtype in paths]
     a, b = torch.randn(256, 2048), torch.randn(2048, 256)
     baseline_s = []
     for i in range(steps + warmup):
@@ -85,26 +103,44 @@ def bench(sizes: list[str], dtypes: list[str], steps: int, warmup: int) -> dict:
     return {"baseline_matmul": _percentiles(baseline_s), "runs": [v.result() for v in variants]}
 
 
+def quality(dtypes: list[str]) -> dict:
+    """Feature error on random codes at the reference size; MPJPE of the BEAT2 clip with the shipped codecs."""
+    from gesture.codec.inference_quality import clip_mpjpe_mm, random_codes_error
+    from gesture.lm.codecs import load_codecs
+
+    reference = load_codec_config(CONFIG_DIR / "reference.yaml").codec
+    return {"random_codes_reference_max_abs_error": random_codes_error(reference, dtypes),
+            "beat2_clip_shipped_codecs": clip_mpjpe_mm(load_codecs(SHIPPED_CODECS), BEAT2_CLIP, dtypes)}
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=30)
     parser.add_argument("--dtypes", nargs="+", default=["float32", "float16"],
-                        choices=["float32", "bfloat16", "float16"], help="weights and activations of the codecs")
+                        choices=["float32", "bfloat16", "float16"], help="the codecs as trained, cast to these")
+    parser.add_argument("--prepared", nargs="*", default=list(INFERENCE_DTYPES), choices=INFERENCE_DTYPES,
+                        help="inference_codec copies with these weights (activations stay float32)")
+    parser.add_argument("--quality", action="store_true", help="also measure what each prepared dtype costs")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     results = {"threads": torch.get_num_threads(), "torch": torch.__version__, "steps": args.steps,
-               "goal_median_ms": GOAL_MEDIAN_MS, **bench(args.sizes, args.dtypes, args.steps, args.warmup)}
+               "goal_median_ms": GOAL_MEDIAN_MS, **bench(args.sizes, args.dtypes, args.prepared, args.steps,
+                                                          args.warmup)}
+    if args.quality:
+        results["quality"] = quality(args.prepared)
     if args.json:
         print(json.dumps(results, indent=2))
         return
     print(f"baseline (4 x 256x2048x256 matmul) median {results['baseline_matmul']['median_ms']:.2f} ms")
     for r in results["runs"]:
         d = r["decode_step_all_three"]
-        print(f"{r['size']:>9} {r['dtype']:>8}: decode step (3 codecs) median {d['median_ms']:.2f} ms, "
-              f"p95 {d['p95_ms']:.2f}, p99 {d['p99_ms']:.2f}")
+        print(f"{r['size']:>9} {r['path']:>15} {r['dtype']:>8}: decode step (3 codecs) median "
+              f"{d['median_ms']:.2f} ms, p95 {d['p95_ms']:.2f}, p99 {d['p99_ms']:.2f}")
+    if args.quality:
+        print(json.dumps(results["quality"], indent=2))
 
 
 if __name__ == "__main__":
