@@ -2,9 +2,10 @@
 
 Same function as `gesture.codec.model.LatentTransformer` in eval mode, (B, D, S) -> (B, D, S), offline or
 streaming one step per call, with: weights in a `step_weights` form, the LayerScales folded into the output
-projections, RoPE as one complex product, and a plain key/value ring without masks while streaming (the ring
-holds exactly the last `context` steps, so every filled slot is visible and slot order does not matter to
-softmax attention). Activations, caches and the residual stream stay float32.
+projections, RoPE as one complex product over q, k and v together (v's rotation is 1), and one key/value
+ring per layer read without a mask while streaming (the ring holds exactly the last `context` steps, so every
+filled slot is visible, and softmax attention does not depend on slot order). Activations, caches and the
+residual stream stay float32.
 """
 
 from __future__ import annotations
@@ -36,21 +37,17 @@ class _StepLayer:
         self.linear2 = step_weight(_scaled_rows(layer.linear2.weight, layer.layer_scale_2), form)
 
     def __call__(self, x: torch.Tensor, shape: tuple[int, int], rotation: torch.Tensor, attend) -> torch.Tensor:
-        """x (B*T, E) float32 -> (B*T, E); `attend(q, k, v)` on (B, H, T, Dh) does the attention."""
+        """x (B*T, E) float32 -> (B*T, E). `rotation` (T, 3, 1, Dh/2) complex; `attend(qkv)` maps the rotated
+        (B, T, 3, H, Dh) to the attention output (B*T, E)."""
         weight, bias, eps = self.norm1
-        x = x + self.out_proj.apply(self._attention(F.layer_norm(x, (self.embed_dim,), weight, bias, eps),
-                                                    shape, rotation, attend))
-        weight, bias, eps = self.norm2
-        hidden = self.linear1.apply(F.layer_norm(x, (self.embed_dim,), weight, bias, eps))  # (B*T, F)
-        return x + self.linear2.apply(F.gelu(hidden))
-
-    def _attention(self, h: torch.Tensor, shape: tuple[int, int], rotation: torch.Tensor, attend) -> torch.Tensor:
+        h = F.layer_norm(x, (self.embed_dim,), weight, bias, eps)
         batch, steps = shape
         qkv = self.in_proj.apply(h).float().view(batch, steps, 3, self.num_heads, self.head_dim // 2, 2)
-        qk = torch.view_as_real(torch.view_as_complex(qkv[:, :, :2]) * rotation[:, None, None])  # RoPE on pairs
-        q, k = qk.flatten(-2).permute(2, 0, 3, 1, 4).unbind(0)  # 2 x (B, H, T, Dh)
-        v = qkv[:, :, 2].flatten(-2).transpose(1, 2)  # (B, H, T, Dh)
-        return attend(q, k, v).transpose(1, 2).reshape(batch * steps, self.embed_dim)
+        qkv = torch.view_as_real(torch.view_as_complex(qkv) * rotation).view(batch, steps, 3, self.num_heads, -1)
+        x = x + self.out_proj.apply(attend(qkv)).float()
+        weight, bias, eps = self.norm2
+        hidden = self.linear1.apply(F.layer_norm(x, (self.embed_dim,), weight, bias, eps))  # (B*T, F)
+        return x + self.linear2.apply(F.gelu(hidden)).float()
 
 
 def _scaled_rows(weight: torch.Tensor, layer_scale: nn.Module) -> torch.Tensor:
@@ -59,10 +56,24 @@ def _scaled_rows(weight: torch.Tensor, layer_scale: nn.Module) -> torch.Tensor:
     return weight.detach() if scale is None else weight.detach() * scale.detach()[:, None]
 
 
+def _masked_attention(allowed: torch.Tensor, qkv: torch.Tensor) -> torch.Tensor:
+    """Offline: qkv (B, T, 3, H, Dh) with the (T, T) mask -> (B*T, H*Dh)."""
+    q, k, v = qkv.permute(2, 0, 3, 1, 4).unbind(0)  # 3 x (B, H, T, Dh)
+    out = F.scaled_dot_product_attention(q, k, v, attn_mask=allowed)  # (B, H, T, Dh)
+    return out.transpose(1, 2).flatten(0, 1).flatten(1)
+
+
+def _ring_attention(ring: torch.Tensor, slot: int, filled: int, qkv: torch.Tensor) -> torch.Tensor:
+    """Streaming: write this step's k, v into ring (B, 2, H, C, Dh) at `slot`, attend over the `filled`
+    first slots. qkv (B, 1, 3, H, Dh) -> (B, H*Dh)."""
+    ring[:, :, :, slot] = qkv[:, 0, 1:]
+    out = F.scaled_dot_product_attention(qkv[:, 0, 0, :, None], ring[:, 0, :, :filled], ring[:, 1, :, :filled])
+    return out.flatten(1)  # (B, H, 1, Dh) -> (B, H*Dh)
+
+
 @dataclass
 class StepTransformerState(StreamingState):
-    keys: list[torch.Tensor] = field(default_factory=list)  # per layer (B, H, context, Dh), a ring
-    values: list[torch.Tensor] = field(default_factory=list)
+    rings: list[torch.Tensor] = field(default_factory=list)  # per layer (B, 2, H, context, Dh): keys, values
     next_position: int = 0
 
     def reset(self) -> None:
@@ -81,49 +92,32 @@ class StepTransformer(StreamingModule[StepTransformerState]):
         self.register_buffer("freqs", transformer.rope.freqs.detach().clone().float(), persistent=False)
 
     def _init_streaming_state(self, batch_size: int) -> StepTransformerState:
-        def ring() -> torch.Tensor:
-            return torch.zeros(batch_size, self.num_heads, self.context, self.head_dim)
-        return StepTransformerState(batch_size, [ring() for _ in self.layers], [ring() for _ in self.layers])
+        shape = (batch_size, 2, self.num_heads, self.context, self.head_dim)
+        return StepTransformerState(batch_size, [torch.zeros(shape) for _ in self.layers])
 
     def _rotation(self, positions: torch.Tensor) -> torch.Tensor:
-        """(T,) absolute positions -> (T, Dh/2) complex unit rotations of RoPE."""
+        """(T,) absolute positions -> (T, 3, 1, Dh/2) complex RoPE rotations of q, k and (identity) v."""
         angles = positions.to(torch.float32)[:, None] * self.freqs  # (T, Dh/2)
-        return torch.polar(torch.ones_like(angles), angles)
+        turns = torch.polar(torch.ones_like(angles), angles)
+        return torch.stack([turns, turns, torch.ones_like(turns)], dim=1)[:, :, None]
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         batch, dim, steps = z.shape
         x = z.transpose(1, 2).reshape(batch * steps, dim)  # (B*S, D)
         state = self._streaming_state
         if state is None:
-            x = self._offline(x, batch, steps)
+            positions = torch.arange(steps)
+            attend = partial(_masked_attention, attention_mask(positions, positions, self.context))
+            rotation = self._rotation(positions)
+            for layer in self.layers:
+                x = layer(x, (batch, steps), rotation, attend)
         else:
-            x = self._step(x, state, batch, steps)
+            if steps != 1:
+                raise ValueError(f"streaming decode takes one step per call, got {steps}")
+            position = state.next_position
+            state.next_position += 1
+            slot, filled = position % self.context, min(position + 1, self.context)
+            rotation = self._rotation(torch.tensor([position]))
+            for layer, ring in zip(self.layers, state.rings):
+                x = layer(x, (batch, 1), rotation, partial(_ring_attention, ring, slot, filled))
         return x.view(batch, steps, dim).transpose(1, 2)
-
-    def _offline(self, x: torch.Tensor, batch: int, steps: int) -> torch.Tensor:
-        positions = torch.arange(steps)
-        allowed = attention_mask(positions, positions, self.context)  # (T, T)
-        rotation = self._rotation(positions)
-        attend = partial(F.scaled_dot_product_attention, attn_mask=allowed)
-        for layer in self.layers:
-            x = layer(x, (batch, steps), rotation, attend)
-        return x
-
-    def _step(self, x: torch.Tensor, state: StepTransformerState, batch: int, steps: int) -> torch.Tensor:
-        if steps != 1:
-            raise ValueError(f"streaming decode takes one step per call, got {steps}")
-        position = state.next_position
-        state.next_position += 1
-        slot, filled = position % self.context, min(position + 1, self.context)
-        rotation = self._rotation(torch.tensor([position]))
-        for layer, keys, values in zip(self.layers, state.keys, state.values):
-            x = layer(x, (batch, 1), rotation, partial(_ring_attention, keys, values, slot, filled))
-        return x
-
-
-def _ring_attention(keys: torch.Tensor, values: torch.Tensor, slot: int, filled: int, q: torch.Tensor,
-                    k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Write this step's k, v (B, H, 1, Dh) to ring `slot`, attend q over the `filled` first slots (no mask)."""
-    keys[:, :, slot] = k[:, :, 0]
-    values[:, :, slot] = v[:, :, 0]
-    return F.scaled_dot_product_attention(q, keys[:, :, :filled], values[:, :, :filled])

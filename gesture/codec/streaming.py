@@ -50,8 +50,9 @@ class _CodecHalf:
 class StreamingDecoder(_CodecHalf):
     """codes (B, K, 1) per step -> (B, FRAMES_PER_STEP, nfeats) float32.
 
-    The codec may be cast to float16 first (`codec.half()`): the step is bound by reading weights,
-    and fp16 matches fp32 to ~1e-4 (see bench/codec.py and tests/test_codec.py)."""
+    For speed, decode with a prepared copy, `gesture.codec.inference.inference_codec(codec, "int8")` (or
+    "float32", "float16", "bfloat16"; see bench/codec.py and tests/test_codec_inference.py); a codec cast
+    with `codec.half()` also works."""
 
     def __init__(self, codec: GestureCodec, batch_size: int = 1) -> None:
         super().__init__(codec, (codec.transformer_decoder, codec.seanet_decoder), batch_size)
