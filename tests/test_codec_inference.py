@@ -64,7 +64,8 @@ def test_prepared_float32_is_float32_exact_and_resets():
     codes = torch.randint(0, SMALL.codebook_size, (1, codec.n_q, STEPS))
     with torch.no_grad():
         offline = codec.decode(codes)
-    prepared = inference_codec(codec, "float32")
+    with StreamingDecoder(codec):
+        prepared = inference_codec(codec, "float32")  # copied while the original streams: no stream open
     with StreamingDecoder(prepared) as decoder:
         first = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(STEPS)], dim=1)
         decoder.reset()

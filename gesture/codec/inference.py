@@ -22,6 +22,7 @@ from gesture.codec.model import GestureCodec
 from gesture.codec.step_seanet import pack_convs
 from gesture.codec.step_transformer import StepTransformer
 from gesture.codec.step_weights import WEIGHT_FORMS, check_form
+from gesture.nn import StreamingModule
 
 INFERENCE_DTYPES = WEIGHT_FORMS
 
@@ -30,6 +31,9 @@ def inference_codec(codec: GestureCodec, dtype: str = "float32") -> GestureCodec
     """An eval-mode copy of `codec` prepared for fast streaming decode with `dtype` weights (INFERENCE_DTYPES)."""
     check_form(dtype)
     prepared = copy.deepcopy(codec).float().eval().requires_grad_(False)
+    for module in prepared.children():
+        if isinstance(module, StreamingModule):
+            module.stop_streaming()  # a copy of a streaming codec starts with no stream open
     prepared.quantizer.project_codebooks()
     prepared.transformer_decoder = StepTransformer(prepared.transformer_decoder, dtype)
     pack_convs(prepared.seanet_decoder, dtype)
