@@ -11,15 +11,19 @@ import yaml
 W, S = Path(sys.argv[1]), Path(sys.argv[2])
 SYNTHETIC = Path(sys.argv[3]) if len(sys.argv) > 3 else W / "synthetic"
 CODEC = yaml.safe_load(Path("configs/codec/default_small.yaml").read_text())["train"]
+DECODER = yaml.safe_load(Path("configs/codec/default_small_finetune.yaml").read_text())["train"]
 LM = yaml.safe_load(Path("configs/lm/default_small.yaml").read_text())["train"]
 times = dict(l.split('\t') for l in (W / 'wall_times.tsv').read_text().splitlines())
 gen = json.loads((SYNTHETIC / 'generation.json').read_text())
-rows = []
+rows, tuned = [], []
 for r in ('upper', 'lower', 'face'):
-    d = json.loads((W / f'codec_{r}.json').read_text())
-    last = d['last']; key = 'jaw_error_deg' if r == 'face' else 'mpjpe_mm'
-    rows.append(f"| {r} | {last['step']} | {last['train'][key]:.2f} | {last['heldout'][key]:.2f} | "
-                f"{last['train']['feature_mse']:.5f} | {last['heldout']['feature_mse']:.5f} |")
+    for stage, record in (('', W / f'codec_{r}.json'), (' (decoder fine-tuned)', W / f'decoder_{r}.json')):
+        if not record.is_file():
+            continue
+        last = json.loads(record.read_text())['last']; key = 'jaw_error_deg' if r == 'face' else 'mpjpe_mm'
+        rows.append(f"| {r}{stage} | {last['step']} | {last['train'][key]:.2f} | {last['heldout'][key]:.2f} | "
+                    f"{last['train']['feature_mse']:.5f} | {last['heldout']['feature_mse']:.5f} |")
+        tuned += [r] if stage else []
 size = {r: (S / 'codecs' / r / 'model.safetensors').stat().st_size / 1e6 for r in ('upper', 'lower', 'face')}
 data = (f"- {gen['sessions']} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
         f"--seed {gen['seed']}`, default SynthConfig; sessions 10 and 20 are the held-out `test` split), plus the real "
@@ -39,6 +43,9 @@ face {size['face']:.1f} MB.
 `configs/codec/default_small.yaml` (each region's `config.yaml` here is the full dump): latent 128, 64 SEANet
 filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch_size']} windows of up to
 {CODEC['window_frames']} frames, {CODEC['steps']} steps, StepLR ×0.8 every {CODEC['lr_step_every']} steps.
+Then the decoder half of {', '.join(tuned) or 'no region'} is fine-tuned with the encoder and quantizer frozen (the
+codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr {DECODER['lr']:g},
+batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`).
 
 ## Metrics
 Reconstruction (offline encode -> decode with all levels) at the last step; MPJPE in mm over the 55 FK joints with
@@ -55,10 +62,12 @@ quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<re
 ## Reproduce
 `bash scripts/train_default.sh` (stage `codecs`: `python -m gesture.train_codec --config
 configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>`,
-the three regions in parallel, `nice -n 5`, one thread each).
+the three regions in parallel, `nice -n 5`, one thread each; stage `decoders`: `python -m gesture.train_codec
+--config configs/codec/default_small_finetune.yaml --region upper --data $WORK/cache --finetune-decoder
+$WORK/codecs/upper --out $WORK/decoders/upper`).
 
-Wall time of the codec stage (three regions in parallel on 2 cores): {int(times['codecs'])} s;
-synthetic data {int(times.get('synthetic', 0))} s, chunk cache {int(times['chunk_cache'])} s.
+Wall time of the codec stage (three regions in parallel on 2 cores): {int(times['codecs'])} s; decoder
+fine-tuning {int(times.get('decoders', 0))} s; synthetic data {int(times.get('synthetic', 0))} s, chunk cache {int(times['chunk_cache'])} s.
 """
 (S / 'codecs' / 'README.md').write_text(codec)
 meta = json.loads((S / 'gesture_lm' / 'lm.json').read_text())
@@ -83,7 +92,8 @@ encoders, the agent channel's speech codes, a text token at each agent word's fi
 the local recogniser), voice activity per step.
 
 ## Config
-`configs/lm/default_small.yaml`: d_model 96, 2 temporal layers, 1 depth layer, gated FFN 192, VA head; AdamW lr
+`configs/lm/default_small.yaml`: d_model {meta['lm']['d_model']}, {meta['lm']['temporal_layers']} temporal layers,
+{meta['lm']['depth_layers']} depth layer(s), gated FFN {meta['lm']['ffn_hidden']}, VA head; AdamW lr
 {LM['lr']:g}, batch {LM['batch_size']} windows of {LM['window_steps']} steps, {LM['epochs']} epochs of
 {LM['steps_per_epoch']} steps, StepLR ×{LM['lr_gamma']} every {LM['lr_step_epochs']} epochs, CFG condition dropout,
 pad input dropout, InfoNCE on Gumbel latents, VA loss weight {LM['va_weight']}.

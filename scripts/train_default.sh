@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Reproduce the shipped default agent on CPU: synthetic dyadic sessions (+ the real BEAT2 clip) -> the three region
-# codecs -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and checkpoints/gesture_lm.
+# codecs -> decoder fine-tuning (upper) -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and
+# checkpoints/gesture_lm. The decoder stage freezes the encoders and quantizers, so it never changes the LM tokens.
 #
 #   bash scripts/train_default.sh                 # the shipped run (about 40 min of wall time on 2 shared cores)
-#   SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
+#   SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
 #
 # Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists
 # (SYNTHETIC=data/synthetic reuses the dataset of `python -m gesture.data.synthetic --out data/synthetic`).
@@ -21,6 +22,9 @@ BEAT2_CLIP=${BEAT2_CLIP:-../shared/data/beat2/2_scott_0_1_1}
 CODEC_CONFIG=${CODEC_CONFIG:-configs/codec/default_small.yaml}
 LM_CONFIG=${LM_CONFIG:-configs/lm/default_small.yaml}
 CODEC_STEPS=${CODEC_STEPS:-}
+DECODER_CONFIG=${DECODER_CONFIG:-configs/codec/default_small_finetune.yaml}
+DECODER_REGIONS=${DECODER_REGIONS:-upper}  # the upper+hands codec holds most of the reconstruction error
+DECODER_STEPS=${DECODER_STEPS:-}
 LM_EPOCHS=${LM_EPOCHS:-}
 NICE=(nice -n "${NICE_LEVEL:-5}")
 export OPENBLAS_NUM_THREADS=1
@@ -65,12 +69,30 @@ train_codecs() {  # the three regions in parallel, each niced and single-threade
   for pid in "${pids[@]}"; do wait "$pid"; done
 }
 
+finetune_decoders() {  # each region of $DECODER_REGIONS in parallel -> $WORK/decoders/<region>
+  local region pids=()
+  for region in $DECODER_REGIONS; do
+    "${NICE[@]}" "$PY" -m gesture.train_codec --config "$DECODER_CONFIG" --region "$region" --data "$WORK/cache" \
+      --finetune-decoder "$WORK/codecs/$region" --out "$WORK/decoders/$region" \
+      ${DECODER_STEPS:+--steps "$DECODER_STEPS"} > "$WORK/decoder_$region.json" 2> "$WORK/decoder_$region.log" &
+    pids+=($!)
+  done
+  for pid in "${pids[@]}"; do wait "$pid"; done
+}
+
+shipped_codec() {  # the fine-tuned codec of a region when there is one
+  if [ -f "$WORK/decoders/$1/model.safetensors" ]; then echo "$WORK/decoders/$1"; else echo "$WORK/codecs/$1"; fi
+}
+
 ship() {  # only what inference needs: codec weights + config, LM weights in bfloat16 + its metadata
   local region
   for region in upper lower face; do
     mkdir -p "$SHIP/codecs/$region"
-    cp "$WORK/codecs/$region/model.safetensors" "$WORK/codecs/$region/config.yaml" \
-      "$WORK/codecs/$region/loss_curve.png" "$SHIP/codecs/$region/"
+    cp "$(shipped_codec "$region")"/{model.safetensors,config.yaml} "$WORK/codecs/$region/loss_curve.png" \
+      "$SHIP/codecs/$region/"
+    if [ -f "$WORK/decoders/$region/loss_curve.png" ]; then
+      cp "$WORK/decoders/$region/loss_curve.png" "$SHIP/codecs/$region/decoder_loss_curve.png"
+    fi
   done
   mkdir -p "$SHIP/gesture_lm"
   cp "$WORK/lm/lm.json" "$WORK/lm/losses.json" "$WORK/lm/loss_curve.png" "$WORK/lm_data/speakers.json" \
@@ -92,6 +114,8 @@ fi
 mix_data
 timed chunk_cache "$PY" -m gesture.data.build --root "$WORK/data" --out "$WORK/cache"
 timed codecs train_codecs
+rm -rf "$WORK/decoders"
+timed decoders finetune_decoders
 rm -rf "$WORK/lm_data" "$WORK/lm"
 timed tokenize "$PY" -m gesture.data.tokenize --root "$WORK/data" --codecs "$WORK/codecs" --out "$WORK/lm_data"
 timed lm "${NICE[@]}" "$PY" -m gesture.train_lm --config "$LM_CONFIG" --data "$WORK/lm_data" \

@@ -183,16 +183,18 @@ def test_tokenize_a_take_matches_the_codecs_own_encoding(tmp_path):
 
 @pytest.mark.slow
 def test_training_chain_end_to_end_tiny(tmp_path):
-    env = {**os.environ, "SESSIONS": "2", "MINUTES": "0.5", "CODEC_STEPS": "10", "LM_EPOCHS": "1",
-           "WORK": str(tmp_path / "work"), "SHIP": str(tmp_path / "ship"), "SYNTHETIC": str(tmp_path / "synthetic"),
-           "PY": str(REPO / ".venv" / "bin" / "python")}
+    env = {**os.environ, "SESSIONS": "2", "MINUTES": "0.5", "CODEC_STEPS": "10", "DECODER_STEPS": "4",
+           "LM_EPOCHS": "1", "WORK": str(tmp_path / "work"), "SHIP": str(tmp_path / "ship"),
+           "SYNTHETIC": str(tmp_path / "synthetic"), "PY": str(REPO / ".venv" / "bin" / "python")}
     subprocess.run(["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=env, check=True,
                    capture_output=True, text=True)
     times = dict(line.split("\t") for line in (tmp_path / "work" / "wall_times.tsv").read_text().splitlines())
-    assert {"synthetic", "chunk_cache", "codecs", "tokenize", "lm", "ship"} <= set(times)
+    assert {"synthetic", "chunk_cache", "codecs", "decoders", "tokenize", "lm", "ship"} <= set(times)
     ship = tmp_path / "ship"
     lm = load_lm(ship / "gesture_lm", LOCAL_SPEC)
     assert next(iter(lm.state_dict().values())).dtype == torch.float32  # stored bf16, loaded as fp32
     codecs = load_codecs(ship / "codecs")
     assert set(codecs) == {"upper", "lower", "face"}
+    tuned = (tmp_path / "work" / "decoders" / "upper" / "model.safetensors").read_bytes()
+    assert (ship / "codecs" / "upper" / "model.safetensors").read_bytes() == tuned  # the fine-tuned decoder ships
     assert json.loads((ship / "gesture_lm" / "speakers.json").read_text())
