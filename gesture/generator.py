@@ -133,17 +133,17 @@ class GestureGenerator:
         return mask_pad(chosen, self.sizes.pad_token)
 
     def _sample_tokens(self, text: int, audio: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
-        tokens = torch.empty(self.sizes.n_levels, dtype=torch.long)
+        tokens = [0] * self.sizes.n_levels
         logits = self.engine.begin_step(self.history, text, audio)
         tokens[0] = sample_top_p(self._pick(logits, 0), self.temperature, self.top_p_temporal, self.generator)
         face = self.sizes.face_levels
         face_logits = []
         for k in range(self.sizes.n_depth):
-            logits = self.engine.depth_logits(k, int(tokens[k]))
+            logits = self.engine.depth_logits(k, tokens[k])
             if k + 1 in face:
                 face_logits.append(logits[0])
             tokens[k + 1] = sample_top_p(self._pick(logits, k + 1), self.temperature, self.top_p_depth, self.generator)
-        return tokens, (torch.stack(face_logits) if face_logits else None)
+        return torch.tensor(tokens), (torch.stack(face_logits) if face_logits else None)
 
     def _decode(self, tokens: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         features = {name: self.decoders[name].step(tokens[self.level_slices[name]].view(1, -1, 1))[0].float().numpy()

@@ -1,4 +1,4 @@
-"""The gesture LM model: checkpoint names, embeddings, conditioning tables, causality, masks, errors, sampling."""
+"""The gesture LM model: checkpoint names, embeddings, conditioning tables, causality, masks, errors."""
 
 from pathlib import Path
 
@@ -11,7 +11,6 @@ from gesture.config import LMConfig
 from gesture.lm.checkpoint import load_lm, save_lm
 from gesture.lm.fixtures import TINY_SPEC, tiny_lm
 from gesture.lm.model import GestureLM, shift_history
-from gesture.lm.sampling import mask_pad, sample_top_p, top_p_probs
 from gesture.lm.stepper import LMStepper
 
 torch.set_num_threads(1)
@@ -141,43 +140,3 @@ def test_lm_config_rejects_bad_sizes():
     with pytest.raises(ConfigError, match="lm.n_upper"):
         LMConfig(n_upper=0)
 
-
-# ----- sampling ---------------------------------------------------------------------------------------------------
-def test_top_p_keeps_tokens_while_mass_before_is_at_most_p():
-    probs = torch.tensor([0.5, 0.3, 0.15, 0.05])
-    kept, order = top_p_probs(probs.log(), temperature=1.0, top_p=0.81)
-    # mass before: 0, 0.5, 0.8, 0.95 -> keep the first three (0.8 <= 0.81)
-    torch.testing.assert_close(kept, torch.tensor([0.5, 0.3, 0.15, 0.0]))
-    assert order.tolist() == [0, 1, 2, 3]
-    kept, _ = top_p_probs(probs.log(), temperature=1.0, top_p=0.79)
-    assert (kept > 0).sum() == 2
-    kept, _ = top_p_probs(probs.log(), temperature=1.0, top_p=0.0)
-    assert (kept > 0).sum() == 1
-
-
-def test_sampling_frequencies_follow_the_truncated_distribution():
-    logits = torch.tensor([0.5, 0.3, 0.15, 0.05]).log().expand(40000, 4)
-    g = torch.Generator().manual_seed(0)
-    draws = sample_top_p(logits, 1.0, 0.81, g)
-    freq = torch.bincount(draws, minlength=4).float() / len(draws)
-    torch.testing.assert_close(freq, torch.tensor([0.5, 0.3, 0.15, 0.0]) / 0.95, atol=0.01, rtol=0)
-
-
-def test_pad_is_never_sampled_even_when_it_dominates():
-    logits = torch.zeros(1000, 17)
-    logits[:, 16] = 50.0
-    draws = sample_top_p(mask_pad(logits, 16), 0.9, 0.95, torch.Generator().manual_seed(0))
-    assert (draws != 16).all()
-
-
-def test_top_p_candidate_shortcut_keeps_the_same_nucleus():
-    g = torch.Generator().manual_seed(0)
-    for scale in (0.5, 3.0, 8.0):  # flat (full sort) to peaked (shortcut) distributions
-        logits = torch.randn(6, 2049, generator=g) * scale
-        kept, order = top_p_probs(logits, 0.9, 0.8)
-        probs = torch.softmax(logits / 0.9, dim=-1)
-        full, full_order = probs.sort(dim=-1, descending=True)
-        full = full.masked_fill(full.cumsum(-1) - full > 0.8, 0.0)
-        for row in range(6):
-            ours = set(order[row][kept[row] > 0].tolist())
-            assert ours == set(full_order[row][full[row] > 0].tolist())

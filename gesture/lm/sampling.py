@@ -1,8 +1,18 @@
-"""Token sampling of the gesture generator (MIBURI-FACTS section 3): temperature, top-p, exponential race,
-classifier-free guidance, and pad masking (pad is never emitted, at any level)."""
+"""Token sampling of the gesture generator (MIBURI-FACTS section 3): temperature, top-p, classifier-free guidance,
+and pad masking (pad is never emitted, at any level).
+
+The top-p rule: order the tokens by decreasing probability (equal probabilities: lower token id first) and keep a
+token while the cumulative mass *before* it is <= top_p, so the most probable token is always kept. `top_p_mask`
+finds that set without ordering the tokens: it sorts the probability *values* only (a vectorised numpy sort,
+~20x faster on this CPU than an argsort of 2049 floats), takes the prefix length `n` from their cumulative sums
+(float64), then keeps every token above the n-th value and, of the tokens equal to it, as many as the prefix
+holds, lowest ids first. tests/test_sampling.py proves it equal to the sort-based rule, ties included. The draw is
+inverse-CDF sampling over the kept probabilities in token order with one float64 uniform.
+"""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -17,36 +27,39 @@ def guide(cond: torch.Tensor, null: torch.Tensor, scale: float) -> torch.Tensor:
     return null + scale * (cond - null)
 
 
-FIRST_CANDIDATES = 128  # sort only this many first; the full sort runs when the nucleus may be larger
+def tempered_probs(logits: torch.Tensor, temperature: float) -> torch.Tensor:
+    """(..., V) logits -> float32 probabilities softmax(logits / temperature)."""
+    return torch.softmax(logits.float() / temperature, dim=-1)
 
 
-def top_p_probs(logits: torch.Tensor, temperature: float, top_p: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sorted, truncated probabilities and their token ids, each (..., N) with N <= V.
-
-    A token is kept while the cumulative probability mass *before* it is <= top_p (so the first is always kept).
-    The nucleus is searched among the FIRST_CANDIDATES most probable tokens, and among all tokens when the mass
-    before the last candidate is still <= top_p: the kept set is the same as with a full sort.
-    """
-    probs = torch.softmax(logits.float() / temperature, dim=-1)
-    if probs.shape[-1] > FIRST_CANDIDATES:
-        sorted_probs, order = probs.topk(FIRST_CANDIDATES, dim=-1)
-        mass_before = sorted_probs.cumsum(dim=-1) - sorted_probs
-        if not bool((mass_before[..., -1] <= top_p).any()):
-            return sorted_probs.masked_fill(mass_before > top_p, 0.0), order
-    sorted_probs, order = probs.sort(dim=-1, descending=True)
-    mass_before = sorted_probs.cumsum(dim=-1) - sorted_probs
-    return sorted_probs.masked_fill(mass_before > top_p, 0.0), order
+def top_p_mask(probs: torch.Tensor, top_p: float) -> torch.Tensor:
+    """(V,) float32 probabilities -> (V,) bool: the tokens the top-p rule keeps (see the module docstring)."""
+    if probs.dim() != 1:
+        raise ValueError(f"top_p_mask takes one (V,) row of probabilities, got shape {tuple(probs.shape)}")
+    values = torch.from_numpy(np.ascontiguousarray(np.sort(probs.numpy())[::-1]))  # (V,) descending
+    mass_through = values.cumsum(0, dtype=torch.float64)  # mass of the first i+1 sorted tokens; nondecreasing
+    kept_count = 1 + int((mass_through[:-1] <= top_p).sum())  # token i is kept iff mass_through[i-1] <= top_p
+    threshold = values[kept_count - 1]
+    mask = probs > threshold
+    tied = (probs == threshold).nonzero().view(-1)  # ascending token ids
+    mask[tied[:kept_count - int(mask.sum())]] = True
+    return mask
 
 
-def exponential_race(probs: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
-    """Draw index i with probability probs[i] / sum(probs) as argmax(probs / E), E ~ Exp(1); (..., V) -> (...)."""
-    race = torch.empty_like(probs).exponential_(generator=generator)
-    return (probs / race).argmax(dim=-1)
+def draw(probs: torch.Tensor, mask: torch.Tensor, uniform: float) -> int:
+    """The kept token whose CDF interval (token order, float64) holds `uniform` in [0, 1) x the kept mass: token i
+    with probability probs[i] / sum(probs[mask]) for a uniform draw; zero-probability tokens are never returned."""
+    cdf = torch.where(mask, probs, 0.0).cumsum(0, dtype=torch.float64)  # (V,)
+    target = uniform * float(cdf[-1])
+    token = int(torch.searchsorted(cdf, target, right=True))  # first token whose cdf exceeds the target
+    if token == cdf.shape[0]:  # the product rounded up to the total: the last kept token
+        token = int(torch.searchsorted(cdf, cdf[-1]))
+    return token
 
 
 def sample_top_p(logits: torch.Tensor, temperature: float, top_p: float,
-                 generator: torch.Generator | None = None) -> torch.Tensor:
-    """logits (..., V) -> token ids (...) drawn with temperature and top-p."""
-    probs, order = top_p_probs(logits, temperature, top_p)
-    choice = exponential_race(probs, generator)
-    return order.gather(-1, choice.unsqueeze(-1)).squeeze(-1)
+                 generator: torch.Generator | None = None) -> int:
+    """(V,) logits -> one token id drawn with temperature and top-p."""
+    probs = tempered_probs(logits, temperature)
+    uniform = float(torch.rand((), dtype=torch.float64, generator=generator))
+    return draw(probs, top_p_mask(probs, top_p), uniform)
