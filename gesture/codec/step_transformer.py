@@ -63,17 +63,28 @@ def _masked_attention(allowed: torch.Tensor, qkv: torch.Tensor) -> torch.Tensor:
     return out.transpose(1, 2).flatten(0, 1).flatten(1)
 
 
-def _ring_attention(ring: torch.Tensor, slot: int, filled: int, qkv: torch.Tensor) -> torch.Tensor:
-    """Streaming: write this step's k, v into ring (B, 2, H, C, Dh) at `slot`, attend over the `filled`
-    first slots. qkv (B, 1, 3, H, Dh) -> (B, H*Dh)."""
-    ring[:, :, :, slot] = qkv[:, 0, 1:]
-    out = F.scaled_dot_product_attention(qkv[:, 0, 0, :, None], ring[:, 0, :, :filled], ring[:, 1, :, :filled])
-    return out.flatten(1)  # (B, H, 1, Dh) -> (B, H*Dh)
+class _Ring:
+    """One layer's key/value ring (B, 2, H, C, Dh), with views made once: per slot to write, per fill to read."""
+
+    def __init__(self, batch_size: int, num_heads: int, context: int, head_dim: int) -> None:
+        self.buffer = torch.zeros(batch_size, 2, num_heads, context, head_dim)
+        self.shape = (batch_size, 3, num_heads, 1, head_dim)
+        self.slots = [self.buffer[:, :, :, s:s + 1] for s in range(context)]  # (B, 2, H, 1, Dh)
+        self.keys = [self.buffer[:, 0, :, :n] for n in range(1, context + 1)]  # (B, H, n, Dh)
+        self.values = [self.buffer[:, 1, :, :n] for n in range(1, context + 1)]
+
+    def attend(self, slot: int, filled: int, qkv: torch.Tensor) -> torch.Tensor:
+        """Write this step's k, v at `slot`, attend over the `filled` first slots (no mask needed).
+        qkv (B, 1, 3, H, Dh) -> (B, H*Dh)."""
+        qkv = qkv.view(self.shape)  # (B, 3, H, 1, Dh)
+        self.slots[slot].copy_(qkv[:, 1:])
+        out = F.scaled_dot_product_attention(qkv[:, 0], self.keys[filled - 1], self.values[filled - 1])
+        return out.flatten(1)  # (B, H, 1, Dh) -> (B, H*Dh)
 
 
 @dataclass
 class StepTransformerState(StreamingState):
-    rings: list[torch.Tensor] = field(default_factory=list)  # per layer (B, 2, H, context, Dh): keys, values
+    rings: list[_Ring] = field(default_factory=list)  # one per layer
     next_position: int = 0
 
     def reset(self) -> None:
@@ -92,8 +103,8 @@ class StepTransformer(StreamingModule[StepTransformerState]):
         self.register_buffer("freqs", transformer.rope.freqs.detach().clone().float(), persistent=False)
 
     def _init_streaming_state(self, batch_size: int) -> StepTransformerState:
-        shape = (batch_size, 2, self.num_heads, self.context, self.head_dim)
-        return StepTransformerState(batch_size, [torch.zeros(shape) for _ in self.layers])
+        return StepTransformerState(batch_size, [_Ring(batch_size, self.num_heads, self.context, self.head_dim)
+                                                 for _ in self.layers])
 
     def _rotation(self, positions: torch.Tensor) -> torch.Tensor:
         """(T,) absolute positions -> (T, 3, 1, Dh/2) complex RoPE rotations of q, k and (identity) v."""
@@ -119,5 +130,5 @@ class StepTransformer(StreamingModule[StepTransformerState]):
             slot, filled = position % self.context, min(position + 1, self.context)
             rotation = self._rotation(torch.tensor([position]))
             for layer, ring in zip(self.layers, state.rings):
-                x = layer(x, (batch, 1), rotation, partial(_ring_attention, ring, slot, filled))
+                x = layer(x, (batch, 1), rotation, partial(ring.attend, slot, filled))
         return x.view(batch, steps, dim).transpose(1, 2)
