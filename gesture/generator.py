@@ -29,7 +29,7 @@ from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
 from gesture.lm.naive import NaiveStepper
 from gesture.lm.packed import pack_linears, packing_available
-from gesture.lm.sampling import guide, mask_pad, sample_top_p
+from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
 from gesture.regions import LOWER_VELOCITY_SLICE, features_to_motion
 
@@ -124,25 +124,27 @@ class GestureGenerator:
                              f"'{spec.name}', got {audio.tolist()}")
         return audio
 
-    def _pick(self, logits: torch.Tensor, level: int) -> torch.Tensor:
-        """(B, V) engine logits of one level -> (V,) logits to sample, pad masked."""
-        if logits.shape[0] == 1 or level in self.unguided:
-            chosen = logits[0].clone()
-        else:
-            chosen = guide(logits[0], logits[1], self.cfg_scale)
-        return mask_pad(chosen, self.sizes.pad_token)
+    def _guidance(self, level: int) -> float:
+        return 1.0 if level in self.unguided else self.cfg_scale
+
+    def _sample(self, logits: torch.Tensor, level: int) -> int:
+        """(V,) guided logits of `level` (a tensor of our own) -> a token; pad masked."""
+        top_p = self.top_p_temporal if level == 0 else self.top_p_depth
+        return sample_top_p(mask_pad(logits, self.sizes.pad_token), self.temperature, top_p, self.generator)
 
     def _sample_tokens(self, text: int, audio: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
         tokens = [0] * self.sizes.n_levels
-        logits = self.engine.begin_step(self.history, text, audio)
-        tokens[0] = sample_top_p(self._pick(logits, 0), self.temperature, self.top_p_temporal, self.generator)
-        face = self.sizes.face_levels
+        tokens[0] = self._sample(self.engine.begin_step(self.history, text, audio, self._guidance(0)), 0)
         face_logits = []
         for k in range(self.sizes.n_depth):
-            logits = self.engine.depth_logits(k, tokens[k])
-            if k + 1 in face:
-                face_logits.append(logits[0])
-            tokens[k + 1] = sample_top_p(self._pick(logits, k + 1), self.temperature, self.top_p_depth, self.generator)
+            level = k + 1
+            if self.engine.needs_face_logits and level in self.sizes.face_levels:
+                rows = self.engine.depth_logits(k, tokens[k])  # (B, V): the VA head reads row 0
+                face_logits.append(rows[0])
+                logits = guided_row(rows, self._guidance(level))
+            else:
+                logits = self.engine.depth_logits(k, tokens[k], self._guidance(level))
+            tokens[level] = self._sample(logits, level)
         return torch.tensor(tokens), (torch.stack(face_logits) if face_logits else None)
 
     def _decode(self, tokens: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -76,14 +76,12 @@ def test_pad_is_never_emitted_even_when_the_model_prefers_it():
         assert (out.tokens != lm.sizes.pad_token).all()
 
 
-def test_cfg_leaves_lower_levels_unguided():
+def test_cfg_guides_every_level_but_the_lower_body():
     gen = _generator(cfg_scale=3.0)
-    cond, null = torch.randn(2, 17), torch.randn(2, 17)
-    logits = torch.stack([cond[0], null[0]])
-    lower = gen.sizes.lower_levels.start
-    torch.testing.assert_close(gen._pick(logits, lower)[:16], cond[0][:16])
-    torch.testing.assert_close(gen._pick(logits, 0)[:16], (null[0] + 3.0 * (cond[0] - null[0]))[:16])
-    assert gen._pick(logits, 0)[16] == float("-inf")
+    assert gen._guidance(0) == 3.0 and gen._guidance(gen.sizes.face_levels.start) == 3.0
+    assert all(gen._guidance(level) == 1.0 for level in gen.sizes.lower_levels)
+    logits = gen._sample(torch.zeros(17), 0)
+    assert 0 <= logits < 16  # pad (16) masked
 
 
 def test_translation_integrates_the_decoded_root_velocity():

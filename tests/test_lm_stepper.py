@@ -91,3 +91,29 @@ def test_bfloat16_weights_stay_close_to_float32():
     ref = _stream_logits(LMStepper(model, guided=True), tokens, text, audio)
     low = _stream_logits(LMStepper(model, guided=True, dtype=torch.bfloat16), tokens, text, audio)
     assert (low - ref).abs().max() < 0.05 * ref.abs().max()
+
+
+
+# bfloat16 products round each logit to 2^-8 relative; guidance c = 3 adds the rows' roundings (c + |c - 1| = 5 ulps)
+@pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 0.05), (torch.int8, 0.05)])
+def test_guided_logits_equal_guidance_of_the_rows(dtype, tolerance):
+    """The guided row is the classifier of the lerped hidden state: null + c (cond − null) of the two rows (within
+    `tolerance` x max |logit| for the rounded weight forms); guidance 1 is row 0."""
+    model = tiny_lm()
+    tokens, text, audio = _sequence(model, 8)
+    rows_engine, guided_engine = LMStepper(model, True, dtype), LMStepper(model, True, dtype)
+
+    def check(rows, guided):
+        scale = rows.abs().max() if dtype != torch.float32 else 1.0
+        torch.testing.assert_close(guided, rows[1] + 3.0 * (rows[0] - rows[1]), atol=tolerance * scale, rtol=0)
+
+    with torch.inference_mode():
+        for t in range(8):
+            history = tokens[:, t - 1] if t else torch.full((model.sizes.n_levels,), -1)
+            check(rows_engine.begin_step(history, int(text[t]), audio[:, t]),
+                  guided_engine.begin_step(history, int(text[t]), audio[:, t], 3.0))
+            for k in range(model.sizes.n_depth):
+                rows = rows_engine.depth_logits(k, int(tokens[k, t]))
+                check(rows, guided_engine.depth_logits(k, int(tokens[k, t]), 3.0))
+                plain = rows_engine.depth_logits(k, int(tokens[k, t]), 1.0)
+                torch.testing.assert_close(plain, rows[0], atol=tolerance * rows.abs().max(), rtol=0)

@@ -10,6 +10,7 @@ from collections import deque
 import torch
 
 from gesture.lm.model import GestureLM
+from gesture.lm.sampling import guided_row
 
 
 class NaiveStepper:
@@ -17,6 +18,7 @@ class NaiveStepper:
         self.model, self.sizes = model, model.sizes
         self.batch = 2 if guided else 1
         self.has_va = model.sizes.va_head
+        self.needs_face_logits = self.has_va and model.sizes.va_use_face_logits
         s = self.sizes
         self.window = s.temporal_layers * (s.self_context_steps - 1) + s.cross_context_steps
         self.history: deque = deque(maxlen=self.window)  # (history (K,), text (), audio (Q,)) per step
@@ -34,7 +36,8 @@ class NaiveStepper:
         """(1, ...) conditioned tensor -> (B, ...) with the null row all −1."""
         return x if self.batch == 1 else torch.cat([x, torch.full_like(x, -1)])
 
-    def begin_step(self, history: torch.Tensor, text: int, audio: torch.Tensor) -> torch.Tensor:
+    def begin_step(self, history: torch.Tensor, text: int, audio: torch.Tensor,
+                   guidance: float | None = None) -> torch.Tensor:
         self.history.append((history.clone(), torch.tensor(text), audio.clone()))
         hist = torch.stack([h for h, _, _ in self.history], dim=-1)[None].expand(self.batch, -1, -1)  # (B, K, W)
         text_w = self._rows(torch.stack([t for _, t, _ in self.history])[None])  # (B, W)
@@ -48,12 +51,16 @@ class NaiveStepper:
         self.current_cond = (audio_sum[:, -1:], text_emb[:, -1:])
         self.current = torch.zeros(self.batch, self.sizes.n_levels, 1, dtype=torch.long)  # (B, K, 1)
         self.step += 1
-        return model.temporal_classifier(self.normed[:, 0])
+        return self._rows_or_guided(model.temporal_classifier(self.normed[:, 0]), guidance)
 
-    def depth_logits(self, k: int, token: int) -> torch.Tensor:
+    def depth_logits(self, k: int, token: int, guidance: float | None = None) -> torch.Tensor:
         self.current[:, k] = token
         logits = self.model.depth_forward(self.normed, self.current, *self.current_cond, self.speaker.expand(self.batch))
-        return logits[:, 0, k]  # (B, V)
+        return self._rows_or_guided(logits[:, 0, k], guidance)  # (B, V) or (V,)
+
+    @staticmethod
+    def _rows_or_guided(rows: torch.Tensor, guidance: float | None) -> torch.Tensor:
+        return rows if guidance is None else guided_row(rows, guidance)
 
     def va_logit(self, face_logits: torch.Tensor | None = None) -> float:
         features = self.temporal_out[:1]

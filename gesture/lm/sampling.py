@@ -27,6 +27,13 @@ def guide(cond: torch.Tensor, null: torch.Tensor, scale: float) -> torch.Tensor:
     return null + scale * (cond - null)
 
 
+def guided_row(rows: torch.Tensor, guidance: float) -> torch.Tensor:
+    """(B, V) logits of [cond, null] (or [cond]) -> (V,) guided logits, a new tensor; row 0 when unguided."""
+    if rows.shape[0] == 1 or guidance == 1.0:
+        return rows[0].clone()
+    return guide(rows[0], rows[1], guidance)
+
+
 def tempered_probs(logits: torch.Tensor, temperature: float) -> torch.Tensor:
     """(..., V) logits -> float32 probabilities softmax(logits / temperature)."""
     return torch.softmax(logits.float() / temperature, dim=-1)

@@ -1,19 +1,18 @@
 """The cached, step-by-step form of `GestureLM` for streaming generation on CPU.
 
-`LMStepper(model, guided, dtype)` copies the model's weights once into fused, precomputed forms, then runs one
-80 ms step as `begin_step(history, text, audio)` (temporal transformer, level-0 logits) followed by
-`depth_logits(k, token_k)` for k = 0..K-2 (the depth transformer, one level at a time). Row 0 of every batch is
-the conditioned stream; with `guided` a row 1 runs the same history with the empty condition (CFG's null half).
+`LMStepper(model, guided, dtype)` copies the model's weights once into fused, precomputed forms
+(`gesture.lm.step_weights`), then runs one 80 ms step as `begin_step(history, text, audio)` (temporal transformer,
+level-0 logits) followed by `depth_logits(k, token_k)` for k = 0..K-2 (the depth transformer, one level at a
+time). Row 0 of every batch is the conditioned stream; with `guided` a row 1 runs the same history with the empty
+condition (CFG's null half). Both calls return the logits of every row, (B, card+1), or with `guidance=c` the
+guided logits null + c·(cond − null) as one (card+1,) row: the classifiers are linear, so that is the classifier
+of the guided hidden state, one row instead of two and no guidance ops on the logits.
 
-Exact rewrites used (all proved against `GestureLM.forward` in tests/test_lm_stepper.py):
-- embeddings followed by a linear = a lookup in a projected table (the sum of 8 audio lookups + one bias);
-- the depth cross-attention has one memory token, so its softmax is 1 and its output is out_proj(val_proj(m)):
-  with `memory_projs` folded in, the pre-activation is one (d, 2d) matrix per position applied to [m_audio, m_text];
-- the null half's memory is a constant (the condition projections' biases), so its cross-attention block output is
-  a per-layer (temporal) or per-layer-and-position (depth) constant; masked lower-body depth rows are constants too;
-- the temporal cross-attention out_projs and memory_projs fold into one (d, 2d) matrix.
-Weights of the matrix products are stored in `dtype` (bfloat16 halves the memory traffic that bounds CPU speed);
-activations, norms, softmax and caches stay float32. Nothing allocated here grows with the session length.
+Weights of the matrix products are stored in `dtype` (float32, oneDNN-prepacked bfloat16, or per-row int8 with
+bfloat16 activations; see `gesture.lm.packed`). The residual streams, norms, softmax and the temporal caches stay
+float32; the depth keys/values are stored in the products' output dtype (they are its outputs, unrounded).
+Every buffer is allocated once: the rings hold exactly the attention windows (self 25, cross 50 steps), so a
+query sees every filled slot and a mask is needed only until a ring is full. Nothing grows with the session.
 """
 
 from __future__ import annotations
@@ -24,100 +23,40 @@ import torch
 import torch.nn.functional as F
 
 from gesture.lm.embeddings import table_index
-from gesture.lm.layers import LAYER_NORM_EPS, DepthLayer, TemporalLayer
+from gesture.lm.layers import LAYER_NORM_EPS
 from gesture.lm.model import GestureLM
-from gesture.lm.packed import gated_ffn, linear, pack_weight
-from gesture.nn.attention import attention_mask
-from gesture.nn.kv_cache import RingKVCache
-from gesture.nn.rope import apply_rope
+from gesture.lm.packed import activation_dtype, gated_ffn, pack_weight, product
+from gesture.lm.step_weights import depth_fold, depth_weights, memory_kv, norm_params, temporal_weights
+from gesture.nn.rope import rope_tables, rotate_with_tables
 from gesture.nn.streaming import StreamingState
 
 F32 = torch.float32
-
-
-def _ffn(x: torch.Tensor, w_in, w_out) -> torch.Tensor:
-    return gated_ffn(x, w_in, w_out)
-
-
-def _rotate(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """RoPE on interleaved pairs of x (..., Dh) with precomputed cos/sin (Dh/2,) of one position."""
-    pairs = x.unflatten(-1, (-1, 2))  # (..., Dh/2, 2)
-    real, imag = pairs[..., 0], pairs[..., 1]
-    return torch.stack((real * cos - imag * sin, real * sin + imag * cos), dim=-1).flatten(-2)
-
-
-def _rotate_rows(weight: torch.Tensor, position: int, freqs: torch.Tensor, heads: int) -> torch.Tensor:
-    """(d, d_in) projection whose outputs are RoPE-rotated at a fixed `position`: rope(W h) = rope(W) h."""
-    columns = weight.T.unflatten(-1, (heads, -1)).transpose(0, 1)[None]  # (1, H, d_in, Dh)
-    rotated = apply_rope(columns, torch.full((weight.shape[1],), position), freqs)
-    return rotated[0].transpose(0, 1).flatten(1).T  # (d, d_in)
-
-
-def _attend(q: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
-    """q (B, H, 1, Dh) over a ring (B, H, C, Dh) with `allowed` (1, C) -> (B, H*Dh)."""
-    scores = (q @ keys.transpose(-1, -2)) * q.shape[-1] ** -0.5  # (B, H, 1, C)
-    weights = torch.softmax(scores.masked_fill(~allowed, float("-inf")), dim=-1)
-    return (weights @ values).flatten(1)
+attend = F.scaled_dot_product_attention
 
 
 def _norm(x: torch.Tensor, params: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     return F.layer_norm(x, (x.shape[-1],), params[0], params[1], LAYER_NORM_EPS)
 
 
-def _norm_params(norm: torch.nn.LayerNorm) -> tuple[torch.Tensor, torch.Tensor]:
-    return norm.weight.detach().clone(), norm.bias.detach().clone()
-
-
-@dataclass
-class _TemporalWeights:
-    norm1: tuple
-    norm2: tuple
-    norm3: tuple
-    qkv: torch.Tensor  # (3d, d)
-    out: torch.Tensor  # (d, d)
-    q_audio: torch.Tensor
-    q_text: torch.Tensor
-    mix: torch.Tensor  # (d, 2d) = memory_projs ∘ [out_audio, out_text]
-    mix_bias: torch.Tensor
-    ca_in: torch.Tensor
-    ca_out: torch.Tensor
-    ffn_in: torch.Tensor
-    ffn_out: torch.Tensor
-    null_ca: torch.Tensor  # (d,) cross-attention block output of the null half
-
-
-@dataclass
-class _DepthWeights:
-    norm1: tuple
-    norm2: tuple
-    qkv: list  # per position (3d, d)
-    out: list
-    ffn_in: list
-    ffn_out: list
-    ca_in: list
-    ca_out: list
-    const_ca: torch.Tensor  # (S, d): masked positions (both halves) and the null half
-    mix_bias: torch.Tensor
-
-
 @dataclass
 class LMStepState(StreamingState):
-    """Per-session state: ring caches of the temporal transformer and the depth scratch of the current step."""
+    """Per-session state: the temporal rings and the depth scratch of the current step."""
 
-    self_caches: list  # RingKVCache (B, H, self_context, Dh) per temporal layer
-    audio_caches: list  # RingKVCache (1, H, cross_context, Dh) per layer: conditioned row only
-    text_caches: list
-    depth_keys: torch.Tensor  # (L_depth, B, H, S, Dh)
-    depth_values: torch.Tensor
+    self_keys: torch.Tensor  # (L, B, H, self_context, Dh), RoPE'd
+    self_values: torch.Tensor
+    cross_keys: torch.Tensor  # (L, 2, H, cross_context, Dh): audio, text memories of row 0, RoPE'd
+    cross_values: torch.Tensor
+    self_filled: torch.Tensor  # (self_context,) bool
+    cross_filled: torch.Tensor  # (cross_context,) bool
+    temporal_ca: torch.Tensor  # (L, B, d): row 0 written per step, row 1 the null constant
+    depth_kv: torch.Tensor  # (L_depth, B, S, 2d) keys | values, in the products' dtype
     depth_z: torch.Tensor  # (B, S, d) depth inputs without the token embedding
-    depth_ca: torch.Tensor  # (L_depth, S, d) cross-attention block output of row 0
+    depth_ca: torch.Tensor  # (L_depth, S, B, d) cross-attention block outputs; constants except open row 0
     step: int = 0
 
     def reset(self) -> None:
-        for cache in (*self.self_caches, *self.audio_caches, *self.text_caches):
-            cache.reset()
-        self.depth_keys.zero_()
-        self.depth_values.zero_()
+        self.self_filled.fill_(False)
+        self.cross_filled.fill_(False)
         self.step = 0
 
 
@@ -129,12 +68,14 @@ class LMStepper:
         self.batch = 2 if guided else 1
         self.dtype = dtype
         self.has_va = model.sizes.va_head
+        self.needs_face_logits = self.has_va and model.sizes.va_use_face_logits
         self._va_model = model if self.has_va else None
         with torch.no_grad():
             self._prepare_tables(model)
             self._prepare_temporal(model)
             self._prepare_depth(model)
         self.state = self._new_state()
+        self._make_views()
         self.set_speaker(0)
 
     # ----- preparation ----------------------------------------------------------------------------------------
@@ -153,7 +94,6 @@ class LMStepper:
         self.spk_depth_table = torch.stack([e.weight.detach() for e in model.spk_depemb], dim=1)  # (n_spk, S, d)
         self.audio_stride = self.spec.audio_card + 1
         self.audio_offsets = torch.arange(self.spec.n_audio_codebooks) * self.audio_stride
-        self.cond_tables = {}  # name -> (projected audio table (Q*(card+1), 2d) , text table (vocab+1, 2d), bias (2, 2d))
         audio = torch.cat([F.pad(t.weight.detach(), (0, 0, 0, 1)) for t in model.audio_procemb])  # zero row per book
         text = F.pad(model.text_procemb.weight.detach(), (0, 0, 0, 1))
         projs = (model.temp_condproj, model.dep_condproj)
@@ -163,89 +103,60 @@ class LMStepper:
         self.text_bias = torch.cat([p[1].bias.detach() for p in projs])
 
     def _prepare_temporal(self, model: GestureLM) -> None:
-        self.temporal = [self._temporal_layer(layer, model) for layer in model.temporal_transformer.layers]
         layers = model.temporal_transformer.layers
-        self.memory_kv = {  # (L*2d, d): keys then values of every layer, for one memory vector
-            name: self._cast(torch.cat([torch.cat([layer.cross_attns[i].key_projs[0].weight,
-                                                   layer.cross_attns[i].val_projs[0].weight]) for layer in layers]))
-            for i, name in enumerate(("audio", "text"))}
-        self.out_norm = _norm_params(model.out_norm)
+        self.temporal = [temporal_weights(layer, model, self._cast) for layer in layers]
+        self.memory_kv = memory_kv(model, self._cast)
+        self.out_norm = norm_params(model.out_norm)
         self.classifier0 = self._cast(model.temporal_classifier.weight)
         self.depth_in = self._cast(torch.cat([lin.weight for lin in model.depformer_in]))  # (S*d, d)
         self.temporal_freqs = layers[0].rope.freqs
 
-    def _temporal_layer(self, layer: TemporalLayer, model: GestureLM) -> _TemporalWeights:
-        d = self.sizes.d_model
-        sa, ca_a, ca_t = layer.self_attn, layer.cross_attns[0], layer.cross_attns[1]
-        w_m, b_m = layer.memory_projs[0].weight, layer.memory_projs[0].bias
-        mix = torch.cat([w_m[:, :d] @ ca_a.out_projs[0].weight, w_m[:, d:] @ ca_t.out_projs[0].weight], dim=1)
-        null_audio = ca_a.val_projs[0](model.temp_condproj[0].bias)  # every key holds the same null value
-        null_text = ca_t.val_projs[0](model.temp_condproj[1].bias)
-        null_ca = layer.ca_gating(F.silu(F.linear(torch.cat([null_audio, null_text]), mix, b_m)))
-        return _TemporalWeights(
-            norm1=_norm_params(layer.norm1), norm2=_norm_params(layer.norm2),
-            norm3=(_norm_params(layer.norm3[0]), _norm_params(layer.norm3[1])),
-            qkv=self._cast(torch.cat([sa.in_projs[0].weight, sa.key_projs[0].weight, sa.val_projs[0].weight])),
-            out=self._cast(sa.out_projs[0].weight),
-            q_audio=self._cast(ca_a.in_projs[0].weight), q_text=self._cast(ca_t.in_projs[0].weight),
-            mix=self._cast(mix), mix_bias=b_m.detach().clone(),
-            ca_in=self._cast(layer.ca_gating.linear_in.weight), ca_out=self._cast(layer.ca_gating.linear_out.weight),
-            ffn_in=self._cast(layer.gating.linear_in.weight), ffn_out=self._cast(layer.gating.linear_out.weight),
-            null_ca=null_ca.detach())
-
     def _prepare_depth(self, model: GestureLM) -> None:
         masked = model.cross_masked
+        layers = model.depth_transformer.layers
         self.open_positions = [s for s in range(self.sizes.n_depth) if not masked[s]]
-        self.depth = [self._depth_layer(layer, model, masked) for layer in model.depth_transformer.layers]
-        self.depth_fold = self._cast(torch.cat([self._depth_fold(layer) for layer in model.depth_transformer.layers]))
+        self.depth = [depth_weights(layer, model, self._cast) for layer in layers]
+        self.depth_fold = self._cast(torch.cat([depth_fold(layer, self.open_positions, self.sizes.d_model)
+                                                for layer in layers]))
+        self.depth_mix_bias = torch.stack([layer.memory_projs[0].bias.detach() for layer in layers])[:, None]  # (L, 1, d)
         self.classifiers = [self._cast(c.weight) for c in model.depformer_classifier]
 
-    def _depth_fold(self, layer: DepthLayer) -> torch.Tensor:
-        """(len(open)*d, 2d): pre-activation of the cross-attention block per open position from [m_audio, m_text]."""
-        d = self.sizes.d_model
-        w_m = layer.memory_projs[0].weight
-        ca_a, ca_t = layer.cross_attns
-        return torch.cat([torch.cat([w_m[:, :d] @ ca_a.out_projs[s].weight @ ca_a.val_projs[0].weight,
-                                     w_m[:, d:] @ ca_t.out_projs[s].weight @ ca_t.val_projs[0].weight], dim=1)
-                          for s in self.open_positions])
-
-    def _depth_layer(self, layer: DepthLayer, model: GestureLM, masked: torch.Tensor) -> _DepthWeights:
-        sa, ca_a, ca_t = layer.self_attn, layer.cross_attns[0], layer.cross_attns[1]
-        w_m, b_m = layer.memory_projs[0].weight, layer.memory_projs[0].bias
-        d = self.sizes.d_model
-        null_audio = ca_a.val_projs[0](model.dep_condproj[0].bias)
-        null_text = ca_t.val_projs[0](model.dep_condproj[1].bias)
-        const = []
-        for s in range(self.sizes.n_depth):
-            pre = b_m if masked[s] else b_m + w_m[:, :d] @ ca_a.out_projs[s](null_audio) + w_m[:, d:] @ ca_t.out_projs[s](null_text)
-            const.append(layer.ca_gating[s](F.silu(pre)))
-        return _DepthWeights(
-            norm1=_norm_params(layer.norm1), norm2=_norm_params(layer.norm2),
-            qkv=[self._cast(torch.cat([_rotate_rows(sa.in_projs[s].weight, s, layer.rope.freqs, layer.heads),
-                                       _rotate_rows(sa.key_projs[s].weight, s, layer.rope.freqs, layer.heads),
-                                       sa.val_projs[s].weight])) for s in range(self.sizes.n_depth)],
-            out=[self._cast(w.weight) for w in sa.out_projs],
-            ffn_in=[self._cast(g.linear_in.weight) for g in layer.gating],
-            ffn_out=[self._cast(g.linear_out.weight) for g in layer.gating],
-            ca_in=[self._cast(g.linear_in.weight) for g in layer.ca_gating],
-            ca_out=[self._cast(g.linear_out.weight) for g in layer.ca_gating],
-            const_ca=torch.stack(const).detach(), mix_bias=b_m.detach().clone())
-
     def _new_state(self) -> LMStepState:
-        s = self.sizes
+        s, b, d = self.sizes, self.batch, self.sizes.d_model
         heads_t, heads_d = s.temporal_heads, s.depth_heads
+        depth_dtype = activation_dtype(self.depth[0].qkv[0]) if self.depth else F32
+        temporal_ca = torch.zeros(s.temporal_layers, b, d)
+        depth_ca = torch.zeros(s.depth_layers, s.n_depth, b, d)
+        for i, w in enumerate(self.temporal):
+            temporal_ca[i, 1:] = w.null_ca
+        for i, w in enumerate(self.depth):
+            depth_ca[i] = w.const_ca[:, None]
         return LMStepState(
-            batch_size=self.batch,
-            self_caches=[RingKVCache(self.batch, heads_t, s.d_model // heads_t, s.self_context_steps)
-                         for _ in range(s.temporal_layers)],
-            audio_caches=[RingKVCache(1, heads_t, s.d_model // heads_t, s.cross_context_steps)
-                          for _ in range(s.temporal_layers)],
-            text_caches=[RingKVCache(1, heads_t, s.d_model // heads_t, s.cross_context_steps)
-                         for _ in range(s.temporal_layers)],
-            depth_keys=torch.zeros(s.depth_layers, self.batch, heads_d, s.n_depth, s.d_model // heads_d),
-            depth_values=torch.zeros(s.depth_layers, self.batch, heads_d, s.n_depth, s.d_model // heads_d),
-            depth_z=torch.zeros(self.batch, s.n_depth, s.d_model),
-            depth_ca=torch.zeros(s.depth_layers, s.n_depth, s.d_model))
+            batch_size=b,
+            self_keys=torch.zeros(s.temporal_layers, b, heads_t, s.self_context_steps, d // heads_t),
+            self_values=torch.zeros(s.temporal_layers, b, heads_t, s.self_context_steps, d // heads_t),
+            cross_keys=torch.zeros(s.temporal_layers, 2, heads_t, s.cross_context_steps, d // heads_t),
+            cross_values=torch.zeros(s.temporal_layers, 2, heads_t, s.cross_context_steps, d // heads_t),
+            self_filled=torch.zeros(s.self_context_steps, dtype=torch.bool),
+            cross_filled=torch.zeros(s.cross_context_steps, dtype=torch.bool),
+            temporal_ca=temporal_ca,
+            depth_kv=torch.zeros(s.depth_layers, b, s.n_depth, 2 * d, dtype=depth_dtype),
+            depth_z=torch.zeros(b, s.n_depth, d), depth_ca=depth_ca)
+
+    def _make_views(self) -> None:
+        """Views into the state used every step, made once (the state is only ever written in place)."""
+        st, s, d = self.state, self.sizes, self.sizes.d_model
+        heads = s.depth_heads
+
+        def prefix(i: int, k: int, half: slice) -> torch.Tensor:  # (B, H, k+1, Dh)
+            return st.depth_kv[i, :, :k + 1, half].unflatten(-1, (heads, -1)).transpose(1, 2)
+
+        self._kv_slots = [[st.depth_kv[i, :, k] for k in range(s.n_depth)] for i in range(s.depth_layers)]
+        self._keys = [[prefix(i, k, slice(0, d)) for k in range(s.n_depth)] for i in range(s.depth_layers)]
+        self._values = [[prefix(i, k, slice(d, 2 * d)) for k in range(s.n_depth)] for i in range(s.depth_layers)]
+        self._ca_rows = [[st.depth_ca[i, k] for k in range(s.n_depth)] for i in range(s.depth_layers)]
+        self._open_ca_rows = [st.depth_ca[i, k, :1] for i in range(s.depth_layers) for k in self.open_positions]
+        self._depth_z_rows = [st.depth_z[:, k] for k in range(s.n_depth)]
 
     # ----- session --------------------------------------------------------------------------------------------
     def set_speaker(self, speaker: int) -> None:
@@ -265,85 +176,91 @@ class LMStepper:
         audio_row = self.audio_table.index_select(0, codes).sum(0) + self.audio_bias
         return torch.stack([audio_row, text_row])
 
-    def begin_step(self, history: torch.Tensor, text: int, audio: torch.Tensor) -> torch.Tensor:
+    def begin_step(self, history: torch.Tensor, text: int, audio: torch.Tensor,
+                   guidance: float | None = None) -> torch.Tensor:
         """history (K,) tokens of the previous step (−1 at the start); text: token id or −1; audio (Q,) codes or −1.
-        Runs the temporal transformer; returns level-0 logits (B, card+1)."""
+        Runs the temporal transformer; returns level-0 logits (B, card+1), or (card+1,) guided by `guidance`."""
         d, st = self.sizes.d_model, self.state
         memories = self.condition_memories(text, audio)  # (2, 2d)
         index = table_index(history, self.sizes.card) + self.level_offsets
         x = self.gesture_table.index_select(0, index).sum(0) + self.spk_temp  # (d,)
-        x = x.expand(self.batch, d).clone()  # (B, d)
-        h = self._temporal(x, memories[:, :d], st.step)  # (B, d) before out_norm
+        h = self._temporal(x.expand(self.batch, d), memories[:, :d])  # (B, d) before out_norm
         self.temporal_out = h
         normed = _norm(h, self.out_norm)
-        st.depth_z.copy_(linear(normed, self.depth_in).view(self.batch, -1, d) + self.spk_depth)  # (B, S, d)
+        st.depth_z.copy_(product(normed, self.depth_in).view(self.batch, -1, d) + self.spk_depth)  # (B, S, d)
         self._depth_cross(memories[:, d:])
         st.step += 1
-        return linear(normed, self.classifier0)
+        return self._logits(normed, self.classifier0, guidance)
 
-    def _temporal(self, x: torch.Tensor, memories: torch.Tensor, t: int) -> torch.Tensor:
-        s, st = self.sizes, self.state
-        heads = s.temporal_heads
-        angles = t * self.temporal_freqs  # (Dh/2,) float32, as gesture.nn.rope computes them
-        rope = (angles.cos(), angles.sin())
-        position = torch.tensor([t])
-        masks: dict = {}
-        kv = {name: linear(memories[i:i + 1], self.memory_kv[name]).view(s.temporal_layers, 2, heads, 1, -1)
-              for i, name in enumerate(("audio", "text"))}  # (L, 2, H, 1, Dh)
+    def _temporal(self, x: torch.Tensor, memories: torch.Tensor) -> torch.Tensor:
+        """x (B, d) input of step t, memories (2, d) [audio, text] -> (B, d); appends to the rings."""
+        s, st, t = self.sizes, self.state, self.state.step
+        heads, d = s.temporal_heads, s.d_model
+        rope = rope_tables(torch.tensor(t), self.temporal_freqs)  # (Dh,) cos, sin at position t
+        self_slot, cross_slot = t % s.self_context_steps, t % s.cross_context_steps
+        self._append_memories(memories, rope, cross_slot)
+        st.self_filled[self_slot] = True
+        self_mask = None if bool(st.self_filled.all()) else st.self_filled[None]  # (1, C)
+        cross_mask = None if bool(st.cross_filled.all()) else st.cross_filled[None]
+        self_keys, self_values = st.self_keys[:, :, :, self_slot], st.self_values[:, :, :, self_slot]  # (L, B, H, Dh)
         for i, w in enumerate(self.temporal):
-            qkv = linear(_norm(x, w.norm1), w.qkv).view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh)
-            q, k = _rotate(qkv[:, 0], *rope), _rotate(qkv[:, 1], *rope)
-            keys, values, k_pos = st.self_caches[i].append(k, qkv[:, 2])
-            if "self" not in masks:  # every layer's ring holds the same positions
-                masks["self"] = attention_mask(position, k_pos, s.self_context_steps)
-            x = x + linear(_attend(q, keys, values, masks["self"]), w.out)
+            qkv = product(_norm(x, w.norm1), w.qkv).float().view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh)
+            qk = rotate_with_tables(qkv[:, :2], *rope)  # (B, 2, H, 1, Dh)
+            self_keys[i].copy_(qk[:, 1, :, 0])
+            self_values[i].copy_(qkv[:, 2, :, 0])
+            attended = attend(qk[:, 0], st.self_keys[i], st.self_values[i], attn_mask=self_mask)  # (B, H, 1, Dh)
+            x = x + product(attended.reshape(self.batch, d), w.out)
             audio_query = _norm(x[:1], w.norm3[0])
-            text_query = _norm(audio_query, w.norm3[1])
-            audio = self._cross(st.audio_caches[i], linear(audio_query, w.q_audio), kv["audio"][i], rope, masks)
-            text = self._cross(st.text_caches[i], linear(text_query, w.q_text), kv["text"][i], rope, masks)
-            mixed = F.silu(linear(torch.cat([audio, text], dim=-1), w.mix) + w.mix_bias)  # (1, d)
-            ca = _ffn(mixed, w.ca_in, w.ca_out)
-            x = x + (torch.cat([ca, w.null_ca[None]]) if self.batch == 2 else ca)
-            x = x + _ffn(_norm(x, w.norm2), w.ffn_in, w.ffn_out)
+            queries = product(torch.cat([audio_query, _norm(audio_query, w.norm3[1])]), w.cross_q).float()  # (2, 2d)
+            q = rotate_with_tables(torch.stack([queries[0, :d], queries[1, d:]]).view(2, heads, 1, -1), *rope)
+            crossed = attend(q, st.cross_keys[i], st.cross_values[i], attn_mask=cross_mask)  # (2, H, 1, Dh)
+            mixed = F.silu(product(crossed.reshape(1, 2 * d), w.mix) + w.mix_bias)  # (1, d) float32
+            st.temporal_ca[i, :1].copy_(gated_ffn(mixed, w.ca_in, w.ca_out))
+            x = x + st.temporal_ca[i]
+            x = x + gated_ffn(_norm(x, w.norm2), w.ffn_in, w.ffn_out)
         return x
 
-    def _cross(self, cache: RingKVCache, q: torch.Tensor, kv: torch.Tensor, rope: tuple, masks: dict) -> torch.Tensor:
-        heads = self.sizes.temporal_heads
-        q = _rotate(q.view(1, heads, 1, -1), *rope)  # (1, H, 1, Dh)
-        keys, values, k_pos = cache.append(_rotate(kv[0][None], *rope), kv[1][None])
-        if "cross" not in masks:  # every layer's audio and text rings hold the same positions
-            masks["cross"] = attention_mask(k_pos.new_tensor([cache.next_position - 1]), k_pos,
-                                            self.sizes.cross_context_steps)
-        return _attend(q, keys, values, masks["cross"])
+    def _append_memories(self, memories: torch.Tensor, rope: tuple, slot: int) -> None:
+        """Keys and values of the audio and text memories for every layer, into ring slot `slot`."""
+        s, st = self.sizes, self.state
+        rows = s.temporal_layers * 2 * s.d_model
+        kv = product(memories, self.memory_kv).float()  # (2, 2 * rows): each memory times both weight halves
+        kv = torch.stack([kv[0, :rows], kv[1, rows:]]).view(2, s.temporal_layers, 2, s.temporal_heads, -1)
+        st.cross_keys[:, :, :, slot] = rotate_with_tables(kv[:, :, 0], *rope).transpose(0, 1)  # (L, 2, H, Dh)
+        st.cross_values[:, :, :, slot] = kv[:, :, 1].transpose(0, 1)
+        st.cross_filled[slot] = True
 
     def _depth_cross(self, memories: torch.Tensor) -> None:
-        """Row-0 cross-attention block outputs of every depth layer and position (others are constants)."""
-        st, d = self.state, self.sizes.d_model
-        n_open = len(self.open_positions)
-        pre = linear(memories.reshape(1, 2 * d), self.depth_fold).view(len(self.depth), n_open, d)
-        for i, w in enumerate(self.depth):
-            st.depth_ca[i].copy_(w.const_ca)
-            for j, s in enumerate(self.open_positions):
-                st.depth_ca[i, s] = _ffn(F.silu(pre[i, j] + w.mix_bias), w.ca_in[s], w.ca_out[s])
+        """Row-0 cross-attention block outputs of every depth layer and open position (the rest are constants)."""
+        d, n_open = self.sizes.d_model, len(self.open_positions)
+        pre = product(memories.reshape(1, 2 * d), self.depth_fold).view(len(self.depth), n_open, d)
+        mixed = F.silu(pre + self.depth_mix_bias).view(-1, 1, d).unbind(0)  # (L * n_open) x (1, d)
+        for j, (x, out) in enumerate(zip(mixed, self._open_ca_rows)):
+            w, s = self.depth[j // n_open], self.open_positions[j % n_open]
+            out.copy_(gated_ffn(x, w.ca_in[s], w.ca_out[s]))
 
-    def depth_logits(self, k: int, token: int) -> torch.Tensor:
-        """Depth position k with level-k token `token` (shared by all rows) -> logits (B, card+1) of level k+1."""
-        st = self.state
-        heads = self.sizes.depth_heads
+    def depth_logits(self, k: int, token: int, guidance: float | None = None) -> torch.Tensor:
+        """Depth position k with level-k token `token` (shared by all rows) -> logits of level k+1: (B, card+1),
+        or (card+1,) guided by `guidance`."""
+        heads, d, b = self.sizes.depth_heads, self.sizes.d_model, self.batch
         row = self.depth_gesture_table[k * self.row_stride + (token if token >= 0 else self.row_stride - 1)]
-        z = st.depth_z[:, k] + row  # (B, d)
+        z = self._depth_z_rows[k] + row  # (B, d)
         for i, w in enumerate(self.depth):
-            qkv = linear(_norm(z, w.norm1), w.qkv[k]).view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh), RoPE'd
-            q = qkv[:, 0]
-            st.depth_keys[i, :, :, k] = qkv[:, 1, :, 0]
-            st.depth_values[i, :, :, k] = qkv[:, 2, :, 0]
-            keys, values = st.depth_keys[i, :, :, :k + 1], st.depth_values[i, :, :, :k + 1]  # (B, H, k+1, Dh)
-            weights = torch.softmax((q @ keys.transpose(-1, -2)) * q.shape[-1] ** -0.5, dim=-1)
-            z = z + linear((weights @ values).flatten(1), w.out[k])
-            ca = st.depth_ca[i, k]
-            z = z + (torch.stack([ca, w.const_ca[k]]) if self.batch == 2 else ca)
-            z = z + _ffn(_norm(z, w.norm2), w.ffn_in[k], w.ffn_out[k])
-        return linear(z, self.classifiers[k])
+            qkv = product(_norm(z, w.norm1), w.qkv[k])  # (B, 3d), RoPE'd by the weights
+            self._kv_slots[i][k].copy_(qkv[:, d:])
+            attended = attend(qkv[:, :d].view(b, heads, 1, -1), self._keys[i][k], self._values[i][k])  # (B, H, 1, Dh)
+            z = z + product(attended.reshape(b, d), w.out[k])
+            z = z + self._ca_rows[i][k]
+            z = z + gated_ffn(_norm(z, w.norm2), w.ffn_in[k], w.ffn_out[k])
+        return self._logits(z, self.classifiers[k], guidance)
+
+    def _logits(self, h: torch.Tensor, classifier, guidance: float | None) -> torch.Tensor:
+        """Classifier logits (B, V) of the rows h (B, d), or (V,) of the guided row lerp(null, cond, guidance)."""
+        if guidance is None:
+            return product(h, classifier).float()
+        if self.batch == 1 or guidance == 1.0:
+            return product(h[:1], classifier).float()[0]
+        return product(torch.lerp(h[1:], h[:1], guidance), classifier).float()[0]
 
     def va_logit(self, face_logits: torch.Tensor | None = None) -> float:
         """Voice-activity logit of row 0 for the current step; face_logits (n_face, card+1) if the head uses them."""
