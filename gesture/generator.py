@@ -31,6 +31,7 @@ from gesture.lm.naive import NaiveStepper
 from gesture.lm.packed import pack_linears, packing_available
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
+from gesture.nn.streaming import StreamingModule
 from gesture.regions import LOWER_VELOCITY_SLICE, features_to_motion
 
 REGIONS = ("upper", "lower", "face")
@@ -47,9 +48,10 @@ class GeneratedStep:
 
 
 class GestureGenerator:
-    """See the module docstring. `dtype` is the weight type of the step path: bfloat16 prepacks the LM's and the
-    codec decoder transformers' matrices (on a copy of each codec). `engine="naive"` swaps in the cache-free
-    baseline (benchmark only)."""
+    """See the module docstring. `dtype` is the weight type of the step path (`gesture.lm.packed.STEP_DTYPES`):
+    bfloat16 prepacks the LM's and the codec decoder transformers' matrices (on a copy of each codec); int8 stores
+    the LM's matrices as per-row int8 (logits within ~1% of float32, twice bfloat16's error) and packs the codecs
+    like bfloat16. `engine="naive"` swaps in the cache-free baseline (benchmark only)."""
 
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
@@ -158,11 +160,15 @@ class GestureGenerator:
 
 
 def _inference_codec(codec: GestureCodec, dtype: torch.dtype) -> GestureCodec:
-    """The codec as decoded here: with bfloat16, a copy whose decoder transformer has prepacked bf16 weights."""
+    """The codec as decoded here: with bfloat16 or int8 LM weights, a copy whose decoder transformer has prepacked
+    bf16 weights."""
     codec = codec.eval()
-    if dtype != torch.bfloat16 or not packing_available():
+    if dtype not in (torch.bfloat16, torch.int8) or not packing_available():
         return codec
     codec = copy.deepcopy(codec)
+    for module in codec.children():
+        if isinstance(module, StreamingModule):
+            module.stop_streaming()  # a copy of a codec another generator streams starts with no stream open
     pack_linears(codec.transformer_decoder)
     return codec
 
