@@ -51,11 +51,13 @@ def training_losses(model: GestureLM, batch: LMBatch, epoch: float, cfg: LMTrain
                                              batch.va_weight)))
     weights = level_weights(sizes.n_levels, sizes.face_levels, cfg.face_ce_weight)
     losses = {"ce": token_ce(out.logits, batch.tokens, weights, sizes.pad_token)}
-    codebooks = [model.codebook_vectors(k) for k in range(sizes.n_levels)]
-    losses["infonce"] = contrastive_loss(out.logits, batch.tokens, codebooks, level_groups(sizes),
-                                         gumbel_tau(epoch, cfg), cfg.infonce_segment_steps,
-                                         cfg.infonce_temperature, generator)
-    total = losses["ce"] + cfg.infonce_weight * losses["infonce"]
+    total = losses["ce"]
+    if cfg.infonce_weight > 0:
+        codebooks = [model.codebook_vectors(k) for k in range(sizes.n_levels)]
+        losses["infonce"] = contrastive_loss(out.logits, batch.tokens, codebooks, level_groups(sizes),
+                                             gumbel_tau(epoch, cfg), cfg.infonce_segment_steps,
+                                             cfg.infonce_temperature, generator)
+        total = total + cfg.infonce_weight * losses["infonce"]
     if out.va_logit is not None:
         losses["va"] = voice_activity_bce(out.va_logit, batch.vad, batch.va_weight)
         total = total + cfg.va_weight * losses["va"]

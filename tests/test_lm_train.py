@@ -124,3 +124,10 @@ def test_cli_trains_the_small_config(tmp_path):
     main(["--config", "configs/lm/small.yaml", "--data", str(data), "--out", str(tmp_path / "out"),
           "--epochs", "2", "--no-progress"])
     assert (tmp_path / "out" / "loss_curve.png").exists()
+
+
+def test_zero_infonce_weight_leaves_the_term_out(tmp_path):
+    history = train(_tiny_file_config(epochs=1, infonce_weight=0.0, va_weight=0.2), _dataset(tmp_path),
+                    tmp_path / "out", progress=False)
+    assert "infonce" not in history[0]
+    assert history[0]["total"] == pytest.approx(history[0]["ce"] + 0.2 * history[0]["va"], rel=1e-5)
