@@ -2,7 +2,10 @@
 
 `create_component(cfg, run)` loads the LM and the three codecs, checks the LM's condition spec against the
 dialogue backend's (`gesture.dialogue_spec`, filled in by the launcher), warms up, and returns the component.
-A new session resets the generator. `close()` writes `gesture.json` (step count and step-time percentiles).
+A new session resets the generator. `close()` writes `gesture.json` (step count and step-time percentiles) and, in
+offline runs, `motion.npz`: every generated step (poses (2T, 55, 3), trans (2T, 3), expressions (2T, 100) at
+`fps` 25, tokens (T, 20), va_prob (T,)), readable by `python -m gesture.evaluate --motion`. Live runs keep no
+record: nothing in a live session grows with time.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import torch
 from agent.config import ConfigError
 from agent.messages import DialogueStep, GestureStep, Message
 from agent.stage import RunContext
-from agent.timing import STEP_SAMPLES
+from agent.timing import MOTION_FPS, STEP_SAMPLES
 from gesture.config import GestureConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
@@ -27,6 +30,7 @@ from gesture.lm.idle import IdleGate, load_idle_slices
 
 log = logging.getLogger(__name__)
 STATS_FILE = "gesture.json"
+MOTION_FILE = "motion.npz"
 DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 
@@ -37,6 +41,7 @@ class GestureComponent:
         self.session: Optional[str] = None
         self.step_ms: list[float] = []  # bounded: summarised and cleared every STATS_EVERY steps
         self.summary = {"steps": 0, "sessions": 0}
+        self.record: Optional[list[GestureStep]] = None if run.live else []
 
     def handle(self, msg: Message) -> Sequence[Message]:
         if not isinstance(msg, DialogueStep):
@@ -49,8 +54,11 @@ class GestureComponent:
         start = time.perf_counter()
         out = self.generator.step(msg.text_token, msg.agent_codes, msg.agent_pcm)
         self._record((time.perf_counter() - start) * 1e3)
-        return (GestureStep(poses=out.poses, trans=out.trans, expressions=out.expressions, tokens=out.tokens,
-                            va_prob=out.va_prob),)
+        step = GestureStep(poses=out.poses, trans=out.trans, expressions=out.expressions, tokens=out.tokens,
+                           va_prob=out.va_prob)
+        if self.record is not None:
+            self.record.append(step)
+        return (step,)
 
     def _record(self, ms: float) -> None:
         self.summary["steps"] += 1
@@ -73,6 +81,15 @@ class GestureComponent:
         self.generator.close()
         self.run.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run.run_dir / STATS_FILE).write_text(json.dumps(self.summary, indent=2))
+        if self.record:
+            write_motion(self.run.run_dir / MOTION_FILE, self.record)
+
+
+def write_motion(path, steps: Sequence[GestureStep]) -> None:
+    """The generated steps as one npz (see the module docstring)."""
+    np.savez(path, poses=np.concatenate([s.poses for s in steps]), trans=np.concatenate([s.trans for s in steps]),
+             expressions=np.concatenate([s.expressions for s in steps]), fps=np.float32(MOTION_FPS),
+             tokens=np.stack([s.tokens for s in steps]), va_prob=np.array([s.va_prob for s in steps], np.float32))
 
 
 def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:

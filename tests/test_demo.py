@@ -47,17 +47,27 @@ def test_demo_listens_answers_and_gestures(tmp_path):
 
 
 @needs_osmesa
-def test_offline_runs_are_byte_identical_with_the_same_seed(tmp_path):
-    """The whole loop, real stages: same recording and seed → the same MP4, byte for byte."""
-    videos = []
+def test_offline_runs_are_identical_with_the_same_seed(tmp_path):
+    """The whole loop, real stages: same recording and seed → the same conversation, the same generated motion
+    (every step's tokens and SMPL-X parameters, bit for bit) and the same MP4 audio and frame count. The MP4's
+    pixels are not compared: llvmpipe is not bit-reproducible across processes (single pixels off by one level in
+    ~10% of frames of the same poses), and x264 spreads such a difference over the following frames."""
+    runs = []
     for run in ("a", "b"):
-        out = tmp_path / f"{run}.mp4"
-        proc = subprocess.run([sys.executable, "launch.py", "--headless", "--seed", "3", "--mp4", str(out),
-                               "--report", str(tmp_path / run), "--set", "render.size=96"],
-                              cwd=ROOT, capture_output=True, text=True, timeout=600)
+        proc = subprocess.run([sys.executable, "launch.py", "--headless", "--seed", "3", "--mp4",
+                               str(tmp_path / f"{run}.mp4"), "--report", str(tmp_path / run), "--set",
+                               "render.size=96"], cwd=ROOT, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stdout + proc.stderr
-        videos.append(out.read_bytes())
-    assert videos[0] == videos[1]
+        with np.load(tmp_path / run / "motion.npz") as motion:
+            arrays = {k: motion[k] for k in motion.files}
+        runs.append((arrays, (tmp_path / run / "transcript.json").read_text(), decode(tmp_path / f"{run}.mp4")))
+    (motion_a, transcript_a, video_a), (motion_b, transcript_b, video_b) = runs
+    assert transcript_a == transcript_b
+    assert motion_a.keys() == motion_b.keys() and len(motion_a["tokens"]) > 100
+    for key in motion_a:
+        assert np.array_equal(motion_a[key], motion_b[key], equal_nan=True), key
+    assert len(video_a["frames"]) == len(video_b["frames"]) == 2 * len(motion_a["tokens"])
+    assert np.array_equal(video_a["audio"], video_b["audio"])
 
 
 def test_speak_mode_makes_the_agent_say_a_recording(tmp_path):

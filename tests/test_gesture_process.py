@@ -16,6 +16,7 @@ from gesture.codec.config import CodecFileConfig
 from gesture.config import GestureConfig
 from gesture.lm.checkpoint import save_lm
 from gesture.lm.fixtures import TINY_SPEC, tiny_codec_config, tiny_codecs, tiny_lm
+from gesture.metrics import load_motion_clip
 from gesture.process import create_component
 
 torch.set_num_threads(1)
@@ -56,6 +57,18 @@ def test_dialogue_steps_become_gesture_steps_and_sessions_reset(checkpoints, tmp
     component.close()
     stats = json.loads((tmp_path / "run" / "gesture.json").read_text())
     assert stats["steps"] == 8 and stats["sessions"] == 2 and stats["step_ms_median"] > 0
+    clip = load_motion_clip(tmp_path / "run" / "motion.npz")  # offline: every step, readable by gesture.evaluate
+    assert clip.fps == 25 and clip.poses.shape == (16, 55, 3)
+    np.testing.assert_array_equal(clip.poses[:8], np.concatenate([m.poses for m in first]))
+    with np.load(tmp_path / "run" / "motion.npz") as motion:
+        np.testing.assert_array_equal(motion["tokens"], np.stack([m.tokens for m in first + again]))
+
+
+def test_live_runs_keep_no_motion_record(checkpoints, tmp_path):
+    component = create_component(_config(checkpoints), RunContext(tmp_path / "run", live=True, seed=5, session="a"))
+    component.handle(_dialogue_step("a", 0))
+    component.close()
+    assert component.record is None and not (tmp_path / "run" / "motion.npz").exists()
 
 
 def test_spec_mismatch_is_a_clear_start_up_error(checkpoints, tmp_path):
