@@ -91,8 +91,9 @@ def temporal_weights(layer: TemporalLayer, model: GestureLM, cast: Cast) -> Temp
 def memory_kv(model: GestureLM, cast: Cast) -> object:
     """(2 * L * 2d, d): for the audio memory, then the text memory, every temporal layer's key then value rows."""
     layers = model.temporal_transformer.layers
-    return cast(torch.cat([torch.cat([layer.cross_attns[i].key_projs[0].weight, layer.cross_attns[i].val_projs[0].weight])
-                           for i in range(2) for layer in layers]))
+    blocks = [(layer.cross_attns[i].key_projs[0].weight, layer.cross_attns[i].val_projs[0].weight)
+              for i in range(2) for layer in layers]
+    return cast(torch.cat([torch.cat(block) for block in blocks]))
 
 
 def depth_fold(layer: DepthLayer, open_positions: list[int], d: int) -> torch.Tensor:

@@ -118,7 +118,8 @@ class LMStepper:
         self.depth = [depth_weights(layer, model, self._cast) for layer in layers]
         self.depth_fold = self._cast(torch.cat([depth_fold(layer, self.open_positions, self.sizes.d_model)
                                                 for layer in layers]))
-        self.depth_mix_bias = torch.stack([layer.memory_projs[0].bias.detach() for layer in layers])[:, None]  # (L, 1, d)
+        biases = [layer.memory_projs[0].bias.detach() for layer in layers]
+        self.depth_mix_bias = torch.stack(biases)[:, None]  # (L, 1, d)
         self.classifiers = [self._cast(c.weight) for c in model.depformer_classifier]
 
     def _new_state(self) -> LMStepState:
