@@ -108,9 +108,9 @@ class GestureConfig:
     top_p_depth: float = 0.95
     cfg_scale: float = 1.3  # guided = null + c * (cond - null); 1.0 switches guidance off
     speaker: int = 3
-    # weights of the step path: "bfloat16" prepacks the LM's and the codec decoder transformers' matrices
-    # (about 1.5x faster per step on CPU; the reference ships its GLM in bf16); "float32" is bit-exact to training
-    dtype: Literal["float32", "bfloat16"] = "bfloat16"
+    # weights of the step path (LM, codec decoders): "float32" is exact to training; "bfloat16" (codecs float16)
+    # and "int8" (per-row int8 weights everywhere, the fastest; see bench.gesture_step) trade a little precision
+    dtype: Literal["float32", "bfloat16", "int8"] = "bfloat16"
     warmup_steps: int = 4  # silent steps run at start-up, then the state is reset
     initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0)
     dialogue_spec: Optional[ConditionSpec] = None  # checked against the LM checkpoint's spec at start-up

@@ -15,7 +15,6 @@ so this puts the feet near the floor.
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from typing import Literal, Mapping, Optional
 
@@ -23,15 +22,14 @@ import numpy as np
 import torch
 
 from agent.timing import FRAMES_PER_STEP, MOTION_FPS
+from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
 from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
 from gesture.lm.naive import NaiveStepper
-from gesture.lm.packed import pack_linears, packing_available
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
-from gesture.nn.streaming import StreamingModule
 from gesture.regions import LOWER_VELOCITY_SLICE, features_to_motion
 
 REGIONS = ("upper", "lower", "face")
@@ -159,18 +157,13 @@ class GestureGenerator:
         return poses, trans, expressions
 
 
+CODEC_FORMS = {torch.float32: "float32", torch.bfloat16: "float16", torch.int8: "int8"}  # LM dtype -> codec weights
+
+
 def _inference_codec(codec: GestureCodec, dtype: torch.dtype) -> GestureCodec:
-    """The codec as decoded here: with bfloat16 or int8 LM weights, a copy whose decoder transformer has prepacked
-    bf16 weights."""
-    codec = codec.eval()
-    if dtype not in (torch.bfloat16, torch.int8) or not packing_available():
-        return codec
-    codec = copy.deepcopy(codec)
-    for module in codec.children():
-        if isinstance(module, StreamingModule):
-            module.stop_streaming()  # a copy of a codec another generator streams starts with no stream open
-    pack_linears(codec.transformer_decoder)
-    return codec
+    """The codec as decoded here: a lean streaming copy (gesture.codec.inference) whose decoder weights follow the
+    LM's dtype (bfloat16 LM weights pair with float16 codec weights, the faster form for the codecs' products)."""
+    return inference_codec(codec, CODEC_FORMS[dtype])
 
 
 def _level_slices(lm: GestureLM) -> dict[str, slice]:

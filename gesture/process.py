@@ -31,7 +31,7 @@ from gesture.lm.idle import IdleGate, load_idle_slices
 log = logging.getLogger(__name__)
 STATS_FILE = "gesture.json"
 MOTION_FILE = "motion.npz"
-DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "int8": torch.int8}
 
 
 class GestureComponent:
