@@ -1,7 +1,5 @@
 """`python -m gesture.train_codec --finetune-decoder DIR`: only the decoder half learns, so the codes stay fixed."""
 
-from pathlib import Path
-
 import pytest
 import torch
 import yaml
@@ -10,17 +8,9 @@ from safetensors.torch import load_file
 from gesture.codec.checkpoint import MODEL_FILE, load_codec
 from gesture.codec.data import load_motion_splits, sample_batch
 from gesture.train_codec import main
+from tests.test_codec_training import CLIP, TINY_YAML
 
 torch.set_num_threads(1)
-CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
-TINY_YAML = {
-    "codec": {"latent_dim": 32, "n_filters": 16, "dim_feedforward": 64, "codebook_size": 32, "codebook_dim": 8,
-              "kmeans_iters": 3, "dropout": 0.0,
-              "regions": {"upper": {"n_q": 2, "num_layers": 1, "num_heads": 2},
-                          "lower": {"n_q": 2, "num_layers": 1, "num_heads": 2},
-                          "face": {"n_q": 2, "num_layers": 1, "num_heads": 2}}},
-    "train": {"batch_size": 2, "window_frames": 16, "lr": 1e-3, "steps": 4, "checkpoint_every": 4},
-}
 DECODER_HALF = ("transformer_decoder.", "seanet_decoder.")
 
 
