@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
@@ -85,7 +86,7 @@ class GestureComponent:
             write_motion(self.run.run_dir / MOTION_FILE, self.record)
 
 
-def write_motion(path, steps: Sequence[GestureStep]) -> None:
+def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
     """The generated steps as one npz (see the module docstring)."""
     np.savez(path, poses=np.concatenate([s.poses for s in steps]), trans=np.concatenate([s.trans for s in steps]),
              expressions=np.concatenate([s.expressions for s in steps]), fps=np.float32(MOTION_FPS),

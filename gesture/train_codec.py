@@ -89,8 +89,8 @@ class CodecTrainer:
         # codebook buffers are kept in sync by the codebooks themselves (gesture.codec.quantizer)
         self.model = DDP(self.codec, broadcast_buffers=False) if dist.is_initialized() else self.codec
         self.loss = RegionLoss(region, skeleton).to(device)
-        trained = [p for p in self.codec.parameters() if p.requires_grad]
-        self.optimizer = torch.optim.AdamW(trained, lr=train.lr, weight_decay=train.weight_decay)
+        self.trained = [p for p in self.codec.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(self.trained, lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
         self.step = 0
         self.history: dict = {"step": [], "loss": [], "eval": []}
@@ -130,7 +130,7 @@ class CodecTrainer:
         loss = terms["total"] + weight * out.commitment_loss
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_([p for p in self.codec.parameters() if p.requires_grad], train.grad_clip)
+        torch.nn.utils.clip_grad_norm_(self.trained, train.grad_clip)
         self.optimizer.step()
         self.scheduler.step()
         self.step += 1
