@@ -47,9 +47,9 @@ class GeneratedStep:
 
 class GestureGenerator:
     """See the module docstring. `dtype` is the weight type of the step path (`gesture.lm.packed.STEP_DTYPES`):
-    bfloat16 prepacks the LM's and the codec decoder transformers' matrices (on a copy of each codec); int8 stores
-    the LM's matrices as per-row int8 (logits within ~1% of float32, twice bfloat16's error) and packs the codecs
-    like bfloat16. `engine="naive"` swaps in the cache-free baseline (benchmark only)."""
+    bfloat16 prepacks the LM's matrices and decodes with float16 codec copies; int8 stores the LM's matrices as
+    per-row int8 (logits within ~1% of float32, twice bfloat16's error) and decodes with int8 codec copies
+    (`gesture.codec.inference`). `engine="naive"` swaps in the cache-free baseline (benchmark only)."""
 
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,

@@ -5,15 +5,12 @@ traffic that bounds a one-row product and skips oneDNN's per-call weight reorder
 (`Int8Weight`, bf16 activations through `aten._weight_int8pack_mm`) halve the bytes again and cut the per-call
 overhead: 25-65% faster than prepacked bf16 on the LM's shapes. `linear` returns float32; `product` returns the
 form's own output dtype (bf16 for the packed forms) for callers that add it to a float32 residual in one op.
-`pack_linears(module)` swaps every `nn.Linear` inside an inference-only module (e.g. a codec's transformer) for a
-`PackedLinear`.
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from torch import nn
 
 F32 = torch.float32
 
@@ -84,29 +81,3 @@ def gated_ffn(x: torch.Tensor, w_in, w_out) -> torch.Tensor:
     it); callers add the result to a float32 residual."""
     gate, value = product(x, w_in).chunk(2, dim=-1)
     return product(F.silu(gate) * value, w_out)
-
-
-class PackedLinear(nn.Module):
-    """Inference-only stand-in for an `nn.Linear` with a packed bfloat16 weight; any leading shape."""
-
-    def __init__(self, source: nn.Linear, batch: int = 1) -> None:
-        super().__init__()
-        self.weight = PackedWeight(source.weight, batch)
-        self.bias = None if source.bias is None else source.bias.detach().clone()
-        self.out_features = source.out_features
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        flat = x.reshape(-1, x.shape[-1]).to(F32)  # (N, in)
-        return linear(flat, self.weight, self.bias).view(*x.shape[:-1], self.out_features)
-
-
-def pack_linears(module: nn.Module, batch: int = 1) -> int:
-    """Replace every nn.Linear below `module` by a PackedLinear, in place; returns how many."""
-    count = 0
-    for name, child in module.named_children():
-        if isinstance(child, nn.Linear):
-            setattr(module, name, PackedLinear(child, batch))
-            count += 1
-        else:
-            count += pack_linears(child, batch)
-    return count
