@@ -1,13 +1,16 @@
 """espeak-ng text-to-speech through libespeak-ng (ctypes), with the sample index of every word.
 
 The library synthesises synchronously at 22050 Hz; `EspeakTts.synthesize` resamples to 24 kHz and maps
-each WORD event's exact sample index to the 24 kHz timeline.
+each WORD event's exact sample index to the 24 kHz timeline. Voice variants with breath noise (e.g. the default
+"en-us+f3") draw from libc's `rand()`, which other libraries in the process share, so every synthesis first seeds
+it from the text: the same sentence always gives the same samples, and offline runs are reproducible.
 """
 
 import ctypes
 import ctypes.util
 import re
 import threading
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,6 +69,7 @@ class Utterance:
 
 _LIB_LOCK = threading.Lock()
 _LIB = None
+_LIBC = ctypes.CDLL(None)  # the process's own libc: espeak-ng's noise uses its rand()
 
 
 def _load_library():
@@ -125,6 +129,7 @@ class EspeakTts:
             lib.espeak_SetParameter(_PARAM_PITCH, int(self.pitch), 0)
             lib.espeak_SetParameter(_PARAM_VOLUME, 100, 0)
             buf = ctypes.create_string_buffer(encoded)
+            _LIBC.srand(zlib.crc32(encoded))
             err = lib.espeak_Synth(buf, len(encoded) + 1, 0, _POS_CHARACTER, 0, _CHARS_UTF8, None, None)
             if err != 0:
                 raise TtsError(f"espeak_Synth failed with code {err}")

@@ -48,18 +48,15 @@ def test_demo_listens_answers_and_gestures(tmp_path):
 
 @needs_osmesa
 def test_offline_runs_are_identical_with_the_same_seed(tmp_path):
-    """The whole loop, real stages, the agent speaking a recording (`--speak`): same seed → the same conversation,
-    the same generated motion (every step's tokens and SMPL-X parameters, bit for bit) and the same MP4 audio and
-    frame count. Not compared: the MP4's pixels (llvmpipe is not bit-reproducible across processes: single pixels
-    off by one level in ~10% of frames of the same poses, which x264 spreads over the following frames), and the
-    default local backend's espeak-ng voice, whose samples were seen to differ between otherwise identical runs."""
+    """The whole loop, real stages: same recording and seed → the same conversation, the same generated motion
+    (every step's tokens and SMPL-X parameters, bit for bit) and the same MP4 audio and frame count. The MP4's
+    pixels are not compared: llvmpipe is not bit-reproducible across processes (single pixels off by one level in
+    ~10% of frames of the same poses), and x264 spreads such a difference over the following frames."""
     runs = []
     for run in ("a", "b"):
-        proc = subprocess.run([sys.executable, "launch.py", "--speak", "assets/examples/librivox_0870.wav",
-                               "--headless", "--seed", "3", "--mp4", str(tmp_path / f"{run}.mp4"), "--report",
-                               str(tmp_path / run), "--set", "render.size=96", "--set",
-                               "dialogue.playback.transcript=assets/examples/librivox_0870.txt"],
-                              cwd=ROOT, capture_output=True, text=True, timeout=600)
+        proc = subprocess.run([sys.executable, "launch.py", "--headless", "--seed", "3", "--mp4",
+                               str(tmp_path / f"{run}.mp4"), "--report", str(tmp_path / run), "--set",
+                               "render.size=96"], cwd=ROOT, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stdout + proc.stderr
         with np.load(tmp_path / run / "motion.npz") as motion:
             arrays = {k: motion[k] for k in motion.files}
