@@ -382,13 +382,8 @@ def test_a_live_run_shows_in_headless_chromium(tmp_path):
     report = tmp_path / "run"
     proc = launch(["--replay", str(wav), "--set", "dashboard.port=0", "--set", "dashboard.wait_for_start=true"],
                   report)
-    try:
-        url = _wait_for_file(report / "dashboard.url", proc).strip()
-        state, later, stopped_s, final_phase = asyncio.run(_watch_page(url, proc))
-        code, output = finish(proc, timeout_s=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    (state, later, stopped_s, final_phase), code, output = _drive_page(proc, report, lambda url: _watch_page(url, proc),
+                                                                       finish_timeout_s=30)
     assert code == 0, output
     assert stopped_s < 10, "Stop ended the run"  # the recording lasts 30 s
     assert final_phase == "stopped" and "dashboard: stopped" in (report / "dashboard.log").read_text()
@@ -414,7 +409,8 @@ async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, flo
         await page.wait_for("window.dashboard && window.dashboard.phase === 'ready'", timeout_s=90)
         assert await page.evaluate("document.getElementById('start').disabled") is False
         await page.evaluate("document.getElementById('start').click()")
-        await page.wait_for("window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2 && window.dashboard.words >= 4", timeout_s=30)
+        await page.wait_for("window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2 "
+                            "&& window.dashboard.words >= 4", timeout_s=30)
         state = await page.evaluate(PAGE_STATE)
         await page.wait_for(f"window.dashboard.chartLastStep > {state['chartLastStep'] + 3}", timeout_s=20)
         later = await page.evaluate(PAGE_STATE)
@@ -432,6 +428,20 @@ def _wait_for_file(path: Path, proc: subprocess.Popen, timeout_s: float = 60) ->
             raise AssertionError(f"no {path.name}: {finish(proc)[1] if proc.poll() is not None else 'timeout'}")
         time.sleep(0.05)
     return path.read_text()
+
+
+def _drive_page(proc: subprocess.Popen, report: Path, page_script, finish_timeout_s: float,
+                url_timeout_s: float = 60):
+    """Run `page_script(url)` (a coroutine function) against the run's dashboard, then let the run end; the
+    process is killed if anything fails. Returns (the script's result, exit code, output)."""
+    try:
+        url = _wait_for_file(report / "dashboard.url", proc, timeout_s=url_timeout_s).strip()
+        result = asyncio.run(page_script(url))
+        code, output = finish(proc, timeout_s=finish_timeout_s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return result, code, output
 
 
 REAL_CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "speech" / "librivox_0870.wav"
@@ -469,12 +479,7 @@ def test_real_dialogue_and_renderer_show_in_the_page(tmp_path):
             await page.wait_for("document.querySelectorAll('.msg.agent span').length >= 2", timeout_s=60)
             return await page.evaluate(VIDEO_SPREAD)
 
-    try:
-        seen = asyncio.run(watch(_wait_for_file(report / "dashboard.url", proc).strip()))
-        code, output = finish(proc, timeout_s=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    seen, code, output = _drive_page(proc, report, watch, finish_timeout_s=60)
     assert code == 0, output
     heard = {"john", "dashwood", "leisure", "consider", "power"} & set(seen["transcript"].lower().split())
     assert seen["userWords"] >= 5 and len(heard) >= 2  # pocketsphinx misses about a third of the words
@@ -506,12 +511,7 @@ def test_the_pages_microphone_is_the_users_voice(tmp_path):
             await page.evaluate("document.getElementById('stop').click()")
             return {"silent": silent, "loud": loud, "micinfo": counters}
 
-    try:
-        seen = asyncio.run(talk(_wait_for_file(report / "dashboard.url", proc).strip()))
-        code, output = finish(proc, timeout_s=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    seen, code, output = _drive_page(proc, report, talk, finish_timeout_s=30)
     assert code == 0, output
     assert seen["silent"] == -90.0  # before the microphone: the source delivers silence on time
     assert seen["loud"] > -45 and seen["micinfo"] == ""
@@ -545,12 +545,7 @@ def test_the_real_dialogue_answers_the_pages_microphone(tmp_path):
             await page.evaluate("document.getElementById('stop').click()")
             return text
 
-    try:
-        transcript = asyncio.run(talk(_wait_for_file(report / "dashboard.url", proc, timeout_s=180).strip()))
-        code, output = finish(proc, timeout_s=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    transcript, code, output = _drive_page(proc, report, talk, finish_timeout_s=60, url_timeout_s=180)
     assert code == 0, output
     heard = {"john", "dashwood", "leisure", "consider", "power"} & set(transcript.lower().split())
     assert len(heard) >= 2 and "agent" in transcript  # pocketsphinx misses about a third of the words
