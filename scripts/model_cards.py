@@ -25,9 +25,21 @@ for r in ('upper', 'lower', 'face'):
                     f"{last['train']['feature_mse']:.5f} | {last['heldout']['feature_mse']:.5f} |")
         tuned += [r] if stage else []
 size = {r: (S / 'codecs' / r / 'model.safetensors').stat().st_size / 1e6 for r in ('upper', 'lower', 'face')}
-data = (f"- {gen['sessions']} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
-        f"--seed {gen['seed']}`, default SynthConfig; sessions 10 and 20 are the held-out `test` split), plus the real "
-        "BEAT2 clip `2_scott_0_1_1` (63.5 s, train split), cut into 10 s chunks by `python -m gesture.data.build`.")
+
+
+def data_line(mix: Path) -> str:
+    """What a mixed BEAT2-layout directory of train_default.sh holds, from its split file."""
+    rows = [line.split(',') for line in (mix / 'train_test_split.csv').read_text().splitlines()[1:]]
+    synthetic = [split for take, split in rows if '_synth_' in take]
+    held = [take.split('_')[3] for take, split in rows if split == 'test']
+    held_out = ', '.join(held) if len(held) <= 3 else f"{held[0]}, {held[1]}, …, {held[-1]}"
+    return (f"- {len(synthetic)} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
+            f"--seed {gen['seed']}`, default SynthConfig, sessions 1..{len(synthetic)}; sessions {held_out} are the "
+            "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split).")
+
+
+codec_data = data_line(W / 'codec_data') + " Cut into 10 s chunks by `python -m gesture.data.build`."
+lm_data = data_line(W / 'data')
 codec = f"""# The default gesture codecs (upper+hands, lower, face)
 
 Three causal RVQ-VAE codecs (gesture.codec, 2 frames per 80 ms step, 256 codes of dimension 32; n_q 8/8/4),
@@ -37,7 +49,7 @@ trained on CPU for the shipped default agent. Load with `gesture.lm.codecs.load_
 face {size['face']:.1f} MB.
 
 ## Data
-{data}
+{codec_data}
 
 ## Config
 `configs/codec/default_small.yaml` (each region's `config.yaml` here is the full dump): latent 128, 64 SEANet
@@ -86,7 +98,7 @@ bfloat16 ({(S / 'gesture_lm' / 'lm.safetensors').stat().st_size / 1e6:.1f} MB) a
 so `gesture.speaker` is its index.
 
 ## Data
-{data}
+{lm_data}
 Tokenized by `python -m gesture.data.tokenize` (train split only): gesture tokens from the three shipped codecs'
 encoders, the agent channel's speech codes, a text token at each agent word's first step (the clip's words from
 the local recogniser), voice activity per step.
@@ -96,7 +108,7 @@ the local recogniser), voice activity per step.
 {meta['lm']['depth_layers']} depth layer(s), gated FFN {meta['lm']['ffn_hidden']}, VA head; AdamW lr
 {LM['lr']:g}, batch {LM['batch_size']} windows of {LM['window_steps']} steps, {LM['epochs']} epochs of
 {LM['steps_per_epoch']} steps, StepLR ×{LM['lr_gamma']} every {LM['lr_step_epochs']} epochs, CFG condition dropout,
-pad input dropout, InfoNCE on Gumbel latents, VA loss weight {LM['va_weight']}.
+pad input dropout, dropout {meta['lm']['dropout']:g}, InfoNCE weight {LM['infonce_weight']:g}, VA loss weight {LM['va_weight']}.
 
 ## Metrics
 Training losses, epoch 1: {fmt(first)}; epoch {last['epoch']}: {fmt(last)} (`losses.json`, `loss_curve.png`).

@@ -3,8 +3,8 @@
 # codecs -> decoder fine-tuning (upper) -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and
 # checkpoints/gesture_lm. The decoder stage freezes the encoders and quantizers, so it never changes the LM tokens.
 #
-#   bash scripts/train_default.sh                 # the shipped run (about 40 min of wall time on 2 shared cores)
-#   SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
+#   bash scripts/train_default.sh                 # the shipped run (about 1.5 hours of wall time on 2 cores)
+#   SESSIONS=2 CODEC_SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
 #
 # Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists
 # (SYNTHETIC=data/synthetic reuses the dataset of `python -m gesture.data.synthetic --out data/synthetic`).
@@ -15,7 +15,8 @@ PY=${PY:-.venv/bin/python}
 WORK=${WORK:-runs/default}
 SHIP=${SHIP:-checkpoints}
 SYNTHETIC=${SYNTHETIC:-$WORK/synthetic}  # its own copy: nothing else writes there while it trains
-SESSIONS=${SESSIONS:-24}
+SESSIONS=${SESSIONS:-200}  # the LM trains on all of them
+CODEC_SESSIONS=${CODEC_SESSIONS:-24}  # the codecs on the first ones
 MINUTES=${MINUTES:-3}
 SEED=${SEED:-0}
 BEAT2_CLIP=${BEAT2_CLIP:-../shared/data/beat2/2_scott_0_1_1}
@@ -41,16 +42,16 @@ timed() {  # timed NAME command...: run it and append "NAME<TAB>seconds" to $TIM
   printf '%s\t%d\n' "$name" $((SECONDS - start)) >> "$TIMES"
 }
 
-mix_data() {  # one BEAT2-layout directory: the synthetic sessions plus the real clip (train split)
-  local mix="$WORK/data" sub
+mix_data() {  # mix_data DIR N: a BEAT2-layout directory of the first N synthetic sessions plus the real clip
+  local mix=$1 n=$2 id file
   rm -rf "$mix"
-  for sub in smplxflame_25 wave16k whisper_transcription; do
-    mkdir -p "$mix/$sub"
-    if [ -d "$SYNTHETIC/$sub" ]; then
-      ln -s "$(realpath "$SYNTHETIC/$sub")"/* "$mix/$sub/"
-    fi
+  mkdir -p "$mix"/{smplxflame_25,wave16k,whisper_transcription}
+  head -n $((n + 1)) "$SYNTHETIC/train_test_split.csv" > "$mix/train_test_split.csv"
+  for id in $(tail -n +2 "$mix/train_test_split.csv" | cut -d, -f1); do
+    for file in "$SYNTHETIC"/*/"$id".*; do
+      ln -s "$(realpath "$file")" "$mix/$(basename "$(dirname "$file")")/"
+    done
   done
-  cp "$SYNTHETIC/train_test_split.csv" "$mix/train_test_split.csv"
   if [ -f "$BEAT2_CLIP.npz" ]; then
     ln -s "$(realpath "$BEAT2_CLIP.npz")" "$mix/smplxflame_25/"
     ln -s "$(realpath "$BEAT2_CLIP.wav")" "$mix/wave16k/"
@@ -109,10 +110,11 @@ EOF
 
 if [ ! -f "$SYNTHETIC/train_test_split.csv" ]; then
   timed synthetic "$PY" -m gesture.data.synthetic --out "$SYNTHETIC" --sessions "$SESSIONS" --minutes "$MINUTES" \
-    --seed "$SEED"
+    --seed "$SEED" --jobs 2
 fi
-mix_data
-timed chunk_cache "$PY" -m gesture.data.build --root "$WORK/data" --out "$WORK/cache"
+mix_data "$WORK/codec_data" "$CODEC_SESSIONS"
+mix_data "$WORK/data" "$SESSIONS"
+timed chunk_cache "$PY" -m gesture.data.build --root "$WORK/codec_data" --out "$WORK/cache"
 timed codecs train_codecs
 rm -rf "$WORK/decoders"
 timed decoders finetune_decoders
