@@ -34,7 +34,7 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Optional
+from typing import Iterable, Optional
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -112,6 +112,20 @@ def _make_session(job: tuple) -> str:
     return tid
 
 
+def generate_sessions(cfg: SynthConfig, root: Path | str, seed: int, numbers: Iterable[int], minutes: float,
+                      jobs: int = 1, progress=iter) -> list[str]:
+    """Write sessions `numbers` (each its own process, see below) under ``root``; returns their take ids."""
+    root = Path(root)
+    for sub in (MOTION_DIR, AUDIO_DIR, TRANSCRIPT_DIR):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    work = [(cfg, str(root), seed, k, minutes) for k in numbers]
+    # espeak-ng's output depends on what the library synthesised before in the same process (its pitch
+    # flutter state runs on), so every session gets a fresh process: the bytes depend only on (seed, k).
+    pool = ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=get_context("spawn"), max_tasks_per_child=1)
+    with pool:
+        return list(progress(pool.map(_make_session, work)))
+
+
 def generate_dataset(cfg: SynthConfig, root: Path | str, n_sessions: int, minutes: float, seed: int,
                      jobs: int = 1, progress=iter) -> list[str]:
     """Write ``n_sessions`` sessions of ``minutes`` each under ``root``; returns their take ids."""
@@ -120,14 +134,7 @@ def generate_dataset(cfg: SynthConfig, root: Path | str, n_sessions: int, minute
     if minutes <= 0:
         raise ConfigError(f"--minutes: must be > 0, got {minutes}")
     root = Path(root)
-    for sub in (MOTION_DIR, AUDIO_DIR, TRANSCRIPT_DIR):
-        (root / sub).mkdir(parents=True, exist_ok=True)
-    work = [(cfg, str(root), seed, k, minutes) for k in range(1, n_sessions + 1)]
-    # espeak-ng's output depends on what the library synthesised before in the same process (its pitch
-    # flutter state runs on), so every session gets a fresh process: the bytes depend only on (seed, k).
-    pool = ProcessPoolExecutor(max_workers=max(1, jobs), mp_context=get_context("spawn"), max_tasks_per_child=1)
-    with pool:
-        ids = list(progress(pool.map(_make_session, work)))
+    ids = generate_sessions(cfg, root, seed, range(1, n_sessions + 1), minutes, jobs, progress)
     with (root / "train_test_split.csv").open("w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(["id", "type"])
