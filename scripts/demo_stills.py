@@ -11,7 +11,7 @@ import av
 import numpy as np
 from PIL import Image
 
-MOTION_FPS = 25
+MOTION_FPS = 25  # agent.timing.MOTION_FPS (scripts/ runs without the repo on the path)
 ARM_JOINTS = slice(16, 22)  # shoulders, elbows, wrists of the SMPL-X body
 
 

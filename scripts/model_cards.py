@@ -30,11 +30,11 @@ size = {r: (S / 'codecs' / r / 'model.safetensors').stat().st_size / 1e6 for r i
 def data_line(mix: Path) -> str:
     """What a mixed BEAT2-layout directory of train_default.sh holds, from its split file."""
     rows = [line.split(',') for line in (mix / 'train_test_split.csv').read_text().splitlines()[1:]]
-    synthetic = [split for take, split in rows if '_synth_' in take]
+    n_synthetic = sum('_synth_' in take for take, _ in rows)
     held = [take.split('_')[3] for take, split in rows if split == 'test']
     held_out = ', '.join(held) if len(held) <= 3 else f"{held[0]}, {held[1]}, …, {held[-1]}"
-    return (f"- {len(synthetic)} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
-            f"--seed {gen['seed']}`, default SynthConfig, sessions 1..{len(synthetic)}; sessions {held_out} are the "
+    return (f"- {n_synthetic} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
+            f"--seed {gen['seed']}`, default SynthConfig, sessions 1..{n_synthetic}; sessions {held_out} are the "
             "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split).")
 
 
