@@ -179,21 +179,21 @@ class HeldoutSession:
     expressions: np.ndarray
 
 
-HELDOUT_DATA_SEED = 0  # scripts/train_default.sh's data seed; its every 10th session is held out of training
-HELDOUT_SESSION_PERIOD = 10
-HELDOUT_MINUTES = 3.0  # the length of its sessions
+HELDOUT_DATA_SEED = 0  # scripts/train_default.sh's data seed; its test split is held out of training
 
 
 def ensure_heldout(root: Path, n_sessions: int) -> None:
     """Generate held-out sessions 10, 20, ... of the training data's seed into `root` unless it already holds
     `n_sessions` test takes."""
     from gesture.data.synth.config import SynthConfig
-    from gesture.data.synthetic import generate_sessions
+    from gesture.data.synthetic import SESSION_MINUTES, generate_sessions, held_out_period
 
     if root.is_dir() and len(_test_takes(root)) >= n_sessions:
         return
-    numbers = range(HELDOUT_SESSION_PERIOD, HELDOUT_SESSION_PERIOD * (n_sessions + 1), HELDOUT_SESSION_PERIOD)
-    ids = generate_sessions(SynthConfig(), root, HELDOUT_DATA_SEED, numbers, HELDOUT_MINUTES, jobs=2)
+    cfg = SynthConfig()
+    period = held_out_period(cfg)
+    numbers = range(period, period * (n_sessions + 1), period)
+    ids = generate_sessions(cfg, root, HELDOUT_DATA_SEED, numbers, SESSION_MINUTES, jobs=2)
     (root / "train_test_split.csv").write_text("id,type\n" + "".join(f"{i},test\n" for i in ids))
 
 

@@ -51,16 +51,16 @@ def test_goal_checks_use_the_issue_limits():
 
 def test_heldout_sessions_are_the_training_datas_own_test_sessions_in_session_order(tmp_path):
     from gesture.data.synth.config import SynthConfig
-    from gesture.data.synthetic import generate_sessions
+    from gesture.data.synthetic import SESSION_MINUTES, generate_sessions
 
     suite.ensure_heldout(tmp_path / "heldout", 2)
     takes = suite._test_takes(tmp_path / "heldout")
     assert [t.take_id for t in takes] == ["31_synth_0_10_10", "31_synth_0_20_20"]
     motion = read_motion(takes[1].motion_path)
-    assert len(motion.poses) == suite.HELDOUT_MINUTES * 60 * motion.fps
+    assert len(motion.poses) == SESSION_MINUTES * 60 * motion.fps
     # session 20 alone, as scripts/train_default.sh's data generation writes it: generating session 10 first
     # must not change it (espeak-ng state carried over within a process did)
-    generate_sessions(SynthConfig(), tmp_path / "alone", suite.HELDOUT_DATA_SEED, [20], suite.HELDOUT_MINUTES)
+    generate_sessions(SynthConfig(), tmp_path / "alone", suite.HELDOUT_DATA_SEED, [20], SESSION_MINUTES)
     alone = read_motion(tmp_path / "alone" / "smplxflame_25" / "31_synth_0_20_20.npz")
     np.testing.assert_array_equal(motion.poses, alone.poses)
     first_write = takes[0].motion_path.stat().st_mtime_ns

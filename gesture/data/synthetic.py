@@ -52,15 +52,23 @@ MOTION_DIR, AUDIO_DIR, TRANSCRIPT_DIR = "smplxflame_25", "wave16k", "whisper_tra
 NUM_BETAS = 300
 
 
+SESSION_MINUTES = 3.0  # the default session length (scripts/train_default.sh's MINUTES)
+
+
 def take_id(cfg: SynthConfig, k: int) -> str:
     return f"{cfg.speaker_number}_{cfg.speaker_name}_0_{k}_{k}"
+
+
+def held_out_period(cfg: SynthConfig) -> int:
+    """Every this-many-th session is held out (test split)."""
+    return max(2, round(1 / cfg.test_fraction))
 
 
 def split_of(cfg: SynthConfig, k: int, n_sessions: int) -> str:
     """Every round(1/test_fraction)-th session is held out; with >= 2 sessions at least the last one is."""
     if cfg.test_fraction <= 0 or n_sessions < 2:
         return "train"
-    period = max(2, round(1 / cfg.test_fraction))
+    period = held_out_period(cfg)
     if k % period == 0 or (n_sessions < period and k == n_sessions):
         return "test"
     return "train"
@@ -148,7 +156,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output directory (BEAT2 layout)")
     parser.add_argument("--sessions", type=int, default=40)
-    parser.add_argument("--minutes", type=float, default=3.0, help="length of each session")
+    parser.add_argument("--minutes", type=float, default=SESSION_MINUTES, help="length of each session")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--config", help="YAML with synthetic options (configs/data/synthetic.yaml)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (the output does not depend on it)")
