@@ -55,9 +55,11 @@ face {size['face']:.1f} MB.
 `configs/codec/default_small.yaml` (each region's `config.yaml` here is the full dump): latent 128, 64 SEANet
 filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch_size']} windows of up to
 {CODEC['window_frames']} frames, {CODEC['steps']} steps, StepLR ×0.8 every {CODEC['lr_step_every']} steps.
-Then the decoder half of {', '.join(tuned) or 'no region'} is fine-tuned with the encoder and quantizer frozen (the
+Then the decoder half is fine-tuned for {' and '.join(tuned) or 'no region'}, with the encoder and quantizer frozen (the
 codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr {DECODER['lr']:g},
-batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`).
+batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`), with the reference's losses plus
+a log-joint-speed term (weight {DECODER['log_speed_weight']:g}, floor {DECODER['speed_floor_mps'] * 1000:g} mm/s, on the
+joints BeatAlign reads; `gesture.codec.losses`) that keeps holds and listening from wobbling.
 
 ## Metrics
 Reconstruction (offline encode -> decode with all levels) at the last step; MPJPE in mm over the 55 FK joints with
@@ -75,8 +77,8 @@ quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<re
 `bash scripts/train_default.sh` (stage `codecs`: `python -m gesture.train_codec --config
 configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>`,
 the three regions in parallel, `nice -n 5`, one thread each; stage `decoders`: `python -m gesture.train_codec
---config configs/codec/default_small_finetune.yaml --region upper --data $WORK/cache --finetune-decoder
-$WORK/codecs/upper --out $WORK/decoders/upper`).
+--config configs/codec/default_small_finetune.yaml --region <region> --data $WORK/cache --finetune-decoder
+$WORK/codecs/<region> --out $WORK/decoders/<region>` for {' and '.join(tuned)}, in parallel).
 
 Wall time of the codec stage (three regions in parallel on 2 cores): {int(times['codecs'])} s; decoder
 fine-tuning {int(times.get('decoders', 0))} s; synthetic data {int(times.get('synthetic', 0))} s, chunk cache {int(times['chunk_cache'])} s.

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Reproduce the shipped default agent on CPU: synthetic dyadic sessions (+ the real BEAT2 clip) -> the three region
-# codecs -> decoder fine-tuning (upper) -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and
+# codecs -> decoder fine-tuning (upper, lower) -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and
 # checkpoints/gesture_lm. The decoder stage freezes the encoders and quantizers, so it never changes the LM tokens.
 #
 #   bash scripts/train_default.sh                 # the shipped run (about 1.5 hours of wall time on 2 cores)
@@ -24,7 +24,7 @@ CODEC_CONFIG=${CODEC_CONFIG:-configs/codec/default_small.yaml}
 LM_CONFIG=${LM_CONFIG:-configs/lm/default_small.yaml}
 CODEC_STEPS=${CODEC_STEPS:-}
 DECODER_CONFIG=${DECODER_CONFIG:-configs/codec/default_small_finetune.yaml}
-DECODER_REGIONS=${DECODER_REGIONS:-upper}  # the upper+hands codec holds most of the reconstruction error
+DECODER_REGIONS=${DECODER_REGIONS:-upper lower}  # the two that move the joints BeatAlign reads
 DECODER_STEPS=${DECODER_STEPS:-}
 LM_EPOCHS=${LM_EPOCHS:-}
 NICE=(nice -n "${NICE_LEVEL:-5}")

@@ -9,7 +9,7 @@ import torch
 import yaml
 
 from gesture.codec.checkpoint import load_codec
-from gesture.codec.losses import RegionLoss, integrate_root, laplacian, log_map, velocity
+from gesture.codec.losses import RegionLoss, integrate_root, laplacian, log_map, log_speed_error, velocity
 from gesture.motion import integrate_velocity
 from gesture.regions import motion_to_features
 from gesture.rotation import axis_angle_to_matrix
@@ -62,6 +62,30 @@ def test_region_loss_vanishes_on_the_target_and_grows_with_error(region):
     assert float(large) > float(small) > float(same["total"])
     with pytest.raises(ValueError, match="differ"):
         loss(target[:, :4], target)
+
+
+def test_log_speed_error_sees_wobble_during_a_hold_that_velocity_mse_misses():
+    hold = torch.zeros(1, 50, 1, 3)  # (B, T, J, 3): a joint at rest
+    wobble = hold.clone()
+    wobble[:, :, 0, 0] = 0.0005 * torch.sin(torch.arange(50.0))  # 0.5 mm: about 12 mm/s at 25 fps
+    stroke = 0.01 * torch.arange(50.0)[None, :, None, None].expand(1, 50, 1, 3)  # 0.43 m/s
+    assert float(log_speed_error(hold, hold, 0.005)) == 0.0
+    assert float(log_speed_error(wobble, hold, 0.005)) > 0.1
+    # the same wobble on top of a stroke barely changes its log speed
+    assert float(log_speed_error(stroke + wobble, stroke, 0.005)) < 0.01 * float(log_speed_error(wobble, hold, 0.005))
+    assert float(velocity(wobble).pow(2).mean()) < 1e-6  # what a position-velocity MSE sees
+
+
+@pytest.mark.parametrize("region", ["upper", "lower"])
+def test_log_speed_term_only_when_weighted(region):
+    rng = np.random.default_rng(1)
+    target = torch.from_numpy(motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), np.zeros((12, 3)),
+                                                 rng.normal(size=(12, 100)))[region])[None]  # (1, 12, nfeats)
+    pred = target + 0.01 * torch.randn_like(target)
+    assert "log_speed" not in RegionLoss(region)(pred, target)
+    weighted = RegionLoss(region, log_speed_weight=0.5)(pred, target)
+    assert float(weighted["log_speed"]) > 0
+    assert float(weighted["total"]) > float(RegionLoss(region)(pred, target)["total"])
 
 
 def test_commitment_ramp():

@@ -121,16 +121,19 @@ class CodecTrainConfig:
     checkpoint_every: int = 100
     holdout_seconds: float = 10.0
     seed: int = 0
+    log_speed_weight: float = 0.0  # not in the reference: see gesture.codec.losses
+    speed_floor_mps: float = 0.005
 
     def __post_init__(self) -> None:
-        _check_positive("train", lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
+        _check_positive("train", speed_floor_mps=self.speed_floor_mps, lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
                         window_frames=self.window_frames, lr_step_every=self.lr_step_every, steps=self.steps,
                         checkpoint_every=self.checkpoint_every)
         _check_rate("train", random_crop_rate=self.random_crop_rate)
         if self.window_frames % 2:
             raise ConfigError(f"train.window_frames: must be even (2 frames per step), got {self.window_frames}")
-        if self.commitment_ramp_steps < 0 or self.holdout_seconds < 0:
-            raise ConfigError("train.commitment_ramp_steps and train.holdout_seconds: must be >= 0")
+        if self.commitment_ramp_steps < 0 or self.holdout_seconds < 0 or self.log_speed_weight < 0:
+            raise ConfigError("train.commitment_ramp_steps, train.holdout_seconds and train.log_speed_weight: "
+                              "must be >= 0")
 
 
 @dataclass(frozen=True)

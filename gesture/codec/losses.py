@@ -8,6 +8,10 @@ Terms (weights from the reference):
 - lower: contacts MSE x2, root velocity MSE x2, positions integrated from it x2, foot skating
   (squared foot speed where the predicted contact > 0.98) x200;
 - face: jaw rotation terms, expressions L1 x6, expression velocity/acceleration/Laplacian x10.
+Optional, outside the reference (`log_speed_weight` > 0, used by the default decoder fine-tuning): the MSE of
+log joint speed, speed = sqrt(|v|^2 + floor^2) in m/s, on the joints BeatAlign reads. Position and velocity
+MSE hardly see millimetre-per-second wobble during holds and listening, yet each wobble is a velocity
+minimum, i.e. a motion beat; in log speed a slow segment weighs as much as a stroke.
 SMPL-X vertex terms need a licensed body model and are not computed here. Joint positions come
 from `gesture.skeleton.forward_kinematics` on the given skeleton (default: the built-in one), with
 every joint outside the region at rest and no translation (the lower body adds its integrated root).
@@ -22,6 +26,7 @@ from torch import nn
 
 from gesture.regions import (CONTACT_JOINTS, FACE_EXPRESSION_SLICE, FACE_JAW_SLICE, JAW_JOINT, LOWER_CONTACT_SLICE,
                              LOWER_JOINTS, LOWER_ROT_SLICE, LOWER_VELOCITY_SLICE, MOTION_FPS, UPPER_JOINTS)
+from gesture.metrics import BEAT_JOINTS
 from gesture.rotation import geodesic_angle, rot6d_to_matrix
 from gesture.skeleton import NUM_JOINTS, Skeleton, forward_kinematics
 
@@ -90,14 +95,22 @@ def position_terms(pred_joints: torch.Tensor, gt_joints: torch.Tensor) -> dict[s
     }
 
 
+def log_speed_error(pred_joints: torch.Tensor, gt_joints: torch.Tensor, floor_mps: float,
+                    fps: float = MOTION_FPS) -> torch.Tensor:
+    """MSE of log sqrt(|v|^2 + floor^2) between (B, T, J, 3) joint tracks in metres (v in m/s)."""
+    log_speed = lambda j: 0.5 * torch.log(velocity(j).mul(fps).pow(2).sum(-1) + floor_mps**2)  # noqa: E731
+    return _mse(log_speed(pred_joints), log_speed(gt_joints))
+
+
 class RegionLoss(nn.Module):
     """`loss(pred, target) -> dict` of weighted terms and their sum under "total"."""
 
-    def __init__(self, region: str, skeleton: Skeleton | None = None) -> None:
+    def __init__(self, region: str, skeleton: Skeleton | None = None, log_speed_weight: float = 0.0,
+                 speed_floor_mps: float = 0.005) -> None:
         super().__init__()
         if region not in ("upper", "lower", "face"):
             raise ValueError(f"region must be upper, lower or face, got {region!r}")
-        self.region = region
+        self.region, self.log_speed_weight, self.speed_floor_mps = region, log_speed_weight, speed_floor_mps
         self.skeleton = skeleton or Skeleton.default()
         joints = {"upper": UPPER_JOINTS, "lower": LOWER_JOINTS, "face": (JAW_JOINT,)}[region]
         self.joints = list(joints)
@@ -125,7 +138,7 @@ class RegionLoss(nn.Module):
         p6, t6 = self._rot6d(pred), self._rot6d(target)
         terms = rotation_terms(p6, t6, self.joint_weights, 100.0 if self.region == "lower" else 2.0)
         if self.region == "upper":
-            terms.update(position_terms(self.joint_positions(p6), self.joint_positions(t6)))
+            terms.update(self._position_terms(self.joint_positions(p6), self.joint_positions(t6)))
         elif self.region == "lower":
             terms.update(self._lower_terms(pred, target, p6, t6))
         else:
@@ -135,6 +148,14 @@ class RegionLoss(nn.Module):
         terms["total"] = torch.stack(list(terms.values())).sum()
         return terms
 
+    def _position_terms(self, pred_joints: torch.Tensor, gt_joints: torch.Tensor) -> dict[str, torch.Tensor]:
+        terms = position_terms(pred_joints, gt_joints)
+        if self.log_speed_weight:
+            beat = list(BEAT_JOINTS)
+            terms["log_speed"] = self.log_speed_weight * log_speed_error(
+                pred_joints[:, :, beat], gt_joints[:, :, beat], self.speed_floor_mps)
+        return terms
+
     def _lower_terms(self, pred, target, p6, t6) -> dict[str, torch.Tensor]:
         vel_p, vel_t = pred[..., LOWER_VELOCITY_SLICE], target[..., LOWER_VELOCITY_SLICE]  # (B, T, 3) m/s
         pos_p, pos_t = integrate_root(vel_p), integrate_root(vel_t)
@@ -142,7 +163,7 @@ class RegionLoss(nn.Module):
         contact_p = pred[..., LOWER_CONTACT_SLICE]  # (B, T, 4)
         feet_speed2 = velocity(joints_p[:, :, list(CONTACT_JOINTS)]).pow(2).sum(-1)  # (B, T-1, 4)
         planted = (contact_p[:, :-1] > CONTACT_ON).to(feet_speed2.dtype).detach()
-        terms = position_terms(self.joint_positions(p6), self.joint_positions(t6))
+        terms = self._position_terms(self.joint_positions(p6), self.joint_positions(t6))
         terms.update({
             "contacts": 2 * _mse(contact_p, target[..., LOWER_CONTACT_SLICE]),
             "root_velocity": 2 * _mse(vel_p, vel_t),
