@@ -3,9 +3,10 @@
 `create_component(cfg, run)` loads the LM and the three codecs, checks the LM's condition spec against the
 dialogue backend's (`gesture.dialogue_spec`, filled in by the launcher), warms up, and returns the component.
 A new session resets the generator. `close()` writes `gesture.json` (step count and step-time percentiles) and, in
-offline runs, `motion.npz`: every generated step (poses (2T, 55, 3), trans (2T, 3), expressions (2T, 100) at
-`fps` 25, tokens (T, 20), va_prob (T,)), readable by `python -m gesture.evaluate --motion`. Live runs keep no
-record: nothing in a live session grows with time.
+offline runs, `motion.npz`: every generated step in BEAT2's layout (poses (2T, 165), trans (2T, 3), expressions
+(2T, 100), mocap_frame_rate 25) plus tokens (T, 20) and va_prob (T,), so `python -m render.play`,
+`python -m gesture.evaluate --motion` and the data tools read it like a BEAT2 take. Live runs keep no record:
+nothing in a live session grows with time.
 """
 
 from __future__ import annotations
@@ -88,8 +89,9 @@ class GestureComponent:
 
 def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
     """The generated steps as one npz (see the module docstring)."""
-    np.savez(path, poses=np.concatenate([s.poses for s in steps]), trans=np.concatenate([s.trans for s in steps]),
-             expressions=np.concatenate([s.expressions for s in steps]), fps=np.float32(MOTION_FPS),
+    poses = np.concatenate([s.poses for s in steps])  # (2T, 55, 3)
+    np.savez(path, poses=poses.reshape(len(poses), -1), trans=np.concatenate([s.trans for s in steps]),
+             expressions=np.concatenate([s.expressions for s in steps]), mocap_frame_rate=np.float32(MOTION_FPS),
              tokens=np.stack([s.tokens for s in steps]), va_prob=np.array([s.va_prob for s in steps], np.float32))
 
 

@@ -11,7 +11,6 @@ import av
 import numpy as np
 from PIL import Image
 
-MOTION_FPS = 25  # agent.timing.MOTION_FPS (scripts/ runs without the repo on the path)
 ARM_JOINTS = slice(16, 22)  # shoulders, elbows, wrists of the SMPL-X body
 
 
@@ -25,9 +24,11 @@ def turns(report: Path, speaker: str) -> list[tuple[float, float]]:
 
 def fastest_arm_moment_s(report: Path, spans: list[tuple[float, float]]) -> float:
     """The time of the largest arm rotation speed (axis-angle change per frame) inside the given spans."""
-    poses = np.load(report / "motion.npz")["poses"]  # (T, 55, 3)
+    with np.load(report / "motion.npz") as motion:  # BEAT2 layout (gesture.process.write_motion)
+        poses = motion["poses"].reshape(len(motion["poses"]), -1, 3)  # (T, 55, 3)
+        fps = float(motion["mocap_frame_rate"])
     speed = np.linalg.norm(np.diff(poses[:, ARM_JOINTS], axis=0), axis=-1).sum(axis=1)  # (T-1,)
-    times = (np.arange(len(speed)) + 1) / MOTION_FPS
+    times = (np.arange(len(speed)) + 1) / fps
     inside = np.zeros(len(speed), bool)
     for start, end in spans:
         inside |= (times >= start) & (times <= end)
@@ -38,6 +39,7 @@ def save_frames(mp4: Path, at_s: dict[str, float], out: Path) -> None:
     with av.open(str(mp4)) as container:
         stream = container.streams.video[0]
         frames = [(float(frame.time), frame.to_ndarray(format="rgb24")) for frame in container.decode(stream)]
+    out.mkdir(parents=True, exist_ok=True)
     for name, t in at_s.items():
         _, image = min(frames, key=lambda f: abs(f[0] - t))
         Image.fromarray(image).save(out / f"demo_{name}.png")

@@ -14,6 +14,7 @@ from agent.stage import RunContext
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
 from gesture.config import GestureConfig
+from gesture.data.beat2 import read_motion
 from gesture.lm.checkpoint import save_lm
 from gesture.lm.fixtures import TINY_SPEC, tiny_codec_config, tiny_codecs, tiny_lm
 from gesture.metrics import load_motion_clip
@@ -60,6 +61,9 @@ def test_dialogue_steps_become_gesture_steps_and_sessions_reset(checkpoints, tmp
     clip = load_motion_clip(tmp_path / "run" / "motion.npz")  # offline: every step, readable by gesture.evaluate
     assert clip.fps == 25 and clip.poses.shape == (16, 55, 3)
     np.testing.assert_array_equal(clip.poses[:8], np.concatenate([m.poses for m in first]))
+    beat2 = read_motion(tmp_path / "run" / "motion.npz")  # and by the BEAT2 reader (render.play, the data tools)
+    assert beat2.fps == 25
+    np.testing.assert_array_equal(beat2.poses, clip.poses)
     with np.load(tmp_path / "run" / "motion.npz") as motion:
         np.testing.assert_array_equal(motion["tokens"], np.stack([m.tokens for m in first + again]))
 
