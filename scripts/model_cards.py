@@ -55,11 +55,12 @@ face {size['face']:.1f} MB.
 `configs/codec/default_small.yaml` (each region's `config.yaml` here is the full dump): latent 128, 64 SEANet
 filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch_size']} windows of up to
 {CODEC['window_frames']} frames, {CODEC['steps']} steps, StepLR ×0.8 every {CODEC['lr_step_every']} steps.
-Then the decoder half is fine-tuned for {' and '.join(tuned) or 'no region'}, with the encoder and quantizer frozen (the
-codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr {DECODER['lr']:g},
-batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`), with the reference's losses plus
-a log-joint-speed term (weight {DECODER['log_speed_weight']:g}, floor {DECODER['speed_floor_mps'] * 1000:g} mm/s, on the
-joints BeatAlign reads; `gesture.codec.losses`) that keeps holds and listening from wobbling.
+Then the decoder half is fine-tuned for {' and '.join(tuned) or 'no region'}, with the encoder and quantizer
+frozen (the codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr
+{DECODER['lr']:g}, batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`), with the
+reference's losses plus a log-joint-speed term (weight {DECODER['log_speed_weight']:g}, floor
+{DECODER['speed_floor_mps'] * 1000:g} mm/s, on the joints BeatAlign reads; `gesture.codec.losses`) that keeps holds
+and listening from wobbling.
 
 ## Metrics
 Reconstruction (offline encode -> decode with all levels) at the last step; MPJPE in mm over the 55 FK joints with

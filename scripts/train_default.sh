@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduce the shipped default agent on CPU: synthetic dyadic sessions (+ the real BEAT2 clip) -> the three region
-# codecs -> decoder fine-tuning (upper, lower) -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face} and
-# checkpoints/gesture_lm. The decoder stage freezes the encoders and quantizers, so it never changes the LM tokens.
+# codecs -> decoder fine-tuning (upper, lower) -> LM tokens -> the gesture LM -> checkpoints/codecs/{upper,lower,face}
+# and checkpoints/gesture_lm. The decoder stage freezes the encoders and quantizers, so it never changes the LM tokens.
 #
 #   bash scripts/train_default.sh                 # the shipped run (about 1.5 hours of wall time on 2 cores)
 #   SESSIONS=2 CODEC_SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh

@@ -125,9 +125,9 @@ class CodecTrainConfig:
     speed_floor_mps: float = 0.005
 
     def __post_init__(self) -> None:
-        _check_positive("train", speed_floor_mps=self.speed_floor_mps, lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
+        _check_positive("train", lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
                         window_frames=self.window_frames, lr_step_every=self.lr_step_every, steps=self.steps,
-                        checkpoint_every=self.checkpoint_every)
+                        checkpoint_every=self.checkpoint_every, speed_floor_mps=self.speed_floor_mps)
         _check_rate("train", random_crop_rate=self.random_crop_rate)
         if self.window_frames % 2:
             raise ConfigError(f"train.window_frames: must be even (2 frames per step), got {self.window_frames}")
