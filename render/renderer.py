@@ -11,6 +11,7 @@ pyrender is imported only after `render.gl.select_platform` has set PYOPENGL_PLA
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -136,6 +137,7 @@ class MeshRenderer:
         import pyrender  # after select_platform: binds PyOpenGL to the chosen platform
 
         self._pyrender = pyrender
+        self._node_type = _stable_node_type(pyrender)
         self.width, self.height = width, height
         self.platform = platform
         self.msaa_samples = msaa_samples
@@ -151,9 +153,8 @@ class MeshRenderer:
 
         self.scene = pyrender.Scene(bg_color=(*BACKGROUND_RGB, 1.0), ambient_light=(0.42, 0.42, 0.43))
         self._add_lights()
-        self._camera_node = self.scene.add(
-            pyrender.PerspectiveCamera(yfov=np.radians(yfov_deg), znear=0.05, zfar=30.0,
-                                       aspectRatio=width / height), pose=np.eye(4))
+        self._camera_node = self._add(camera=pyrender.PerspectiveCamera(
+            yfov=np.radians(yfov_deg), znear=0.05, zfar=30.0, aspectRatio=width / height))
         self._ground_node = self._add_disc(GROUND_RADIUS_M, 1, 72, GROUND_RGB, GROUND_RGB, 0.0)
         self._shadow_node = self._add_disc(SHADOW_RADIUS_M, 8, 48, SHADOW_RGB, GROUND_RGB, 0.002)
         self._mesh_node = None
@@ -163,6 +164,12 @@ class MeshRenderer:
         self._flags = pyrender.RenderFlags.NONE
         self._msaa_applied = False
 
+    def _add(self, **node_fields):
+        """Add one node (mesh=, light= or camera=, matrix=) to the scene; returns it."""
+        node = self._node_type(**node_fields)
+        self.scene.add_node(node)
+        return node
+
     def _add_lights(self) -> None:
         """Soft three-point lighting: a warm key from the upper left, a cool fill from the right, a rim from behind."""
         pyrender = self._pyrender
@@ -170,8 +177,8 @@ class MeshRenderer:
                 ((1.0, 0.97, 0.92), 0.72, -35.0, -35.0),
                 ((0.85, 0.9, 1.0), 0.3, 45.0, -15.0),
                 ((1.0, 1.0, 1.0), 0.35, 160.0, -30.0)):
-            light = pyrender.DirectionalLight(color=rgb, intensity=intensity)
-            self.scene.add(light, pose=_light_pose(yaw_deg, pitch_deg))
+            self._add(light=pyrender.DirectionalLight(color=rgb, intensity=intensity),
+                      matrix=_light_pose(yaw_deg, pitch_deg))
 
     def _add_disc(self, radius_m, n_rings, n_segments, center_rgb, rim_rgb, y_m):
         """An unlit disc: its vertex colours are final (a soft-lit floor is nearly uniform anyway)."""
@@ -180,7 +187,7 @@ class MeshRenderer:
         primitive = pyrender.Primitive(positions=vertices, indices=faces,  # no normals: unlit (see mesh.vert)
                                        color_0=np.concatenate([colours, np.ones((len(colours), 1), np.float32)], 1),
                                        material=self._material, mode=pyrender.constants.GLTF.TRIANGLES)
-        return self.scene.add(pyrender.Mesh([primitive]))
+        return self._add(mesh=pyrender.Mesh([primitive]))
 
     def set_ground_center(self, floor_y_m: float, ground_xz: np.ndarray, shadow_xz: np.ndarray) -> None:
         """Ground disc centred at `ground_xz`, blob shadow under `shadow_xz`, both at the floor height."""
@@ -202,7 +209,7 @@ class MeshRenderer:
         self._primitive = pyrender.Primitive(
             positions=data[:, :3].copy(), normals=data[:, 3:6].copy(), color_0=self._colours,
             indices=self.faces, material=self._material, mode=pyrender.constants.GLTF.TRIANGLES)
-        self._mesh_node = self.scene.add(pyrender.Mesh([self._primitive]))
+        self._mesh_node = self._add(mesh=pyrender.Mesh([self._primitive]))
 
     def _upload_in_place(self, vertices: np.ndarray) -> None:
         from OpenGL import GL
@@ -264,6 +271,27 @@ class MeshRenderer:
         eglDestroyContext(platform._egl_display, platform._egl_context)
         platform._egl_context = None
         platform._egl_display = None  # so OffscreenRenderer.__del__ cannot eglTerminate the shared display
+
+
+def _stable_node_type(pyrender):
+    """pyrender.Node hashed by creation order instead of by address.
+
+    pyrender keeps a scene's lights and meshes in sets and binds the lights in iteration order, which with
+    address hashes changes from process to process: the shader's sum over lights then rounds differently, and the
+    same motion rendered twice gave frames that differed by one level on scattered pixels (and MP4s that differed
+    throughout). With creation-order hashes every run iterates, and renders, alike.
+    """
+    order = itertools.count()
+
+    class StableNode(pyrender.Node):
+        def __init__(self, **fields) -> None:
+            super().__init__(**fields)
+            self._order = next(order)
+
+        def __hash__(self) -> int:
+            return self._order
+
+    return StableNode
 
 
 def _program_cache(pyrender):

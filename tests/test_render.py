@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from render.testing import needs_osmesa, silhouette, silhouette_center
 torch.set_num_threads(1)
 pytestmark = needs_osmesa
 SIZE = 128
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +81,28 @@ def test_face_preset_fills_the_frame_with_the_head(avatar):
 def test_camera_rejects_unknown_preset():
     with pytest.raises(ValueError, match="render.camera"):
         CameraRig("side")
+
+
+FRAMES_HASH_SCRIPT = """
+import hashlib
+import numpy as np
+from gesture.data.beat2 import read_motion
+from render.avatar import build_avatar
+from render.view import AvatarView
+motion = read_motion("../shared/data/beat2/2_scott_0_1_1.npz")
+view = AvatarView(build_avatar(), 256, 256)
+digest = hashlib.sha1()
+for i in range(0, 300, 30):
+    digest.update(view.frame(motion.poses[i], motion.trans[i], motion.expressions[i]).tobytes())
+print(digest.hexdigest())
+"""
+
+
+def test_the_same_poses_render_the_same_pixels_in_every_process():
+    """Object addresses differ between processes; the image must not (pyrender's light order followed them)."""
+    digests = {subprocess.run([sys.executable, "-c", FRAMES_HASH_SCRIPT], capture_output=True, text=True, check=True,
+                              timeout=300, cwd=ROOT).stdout.strip() for _ in range(4)}
+    assert len(digests) == 1 and len(digests.pop()) == 40
 
 
 EGL_SCRIPT = """
