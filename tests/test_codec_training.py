@@ -8,7 +8,9 @@ import pytest
 import torch
 import yaml
 
+from agent.config import ConfigError
 from gesture.codec.checkpoint import load_codec
+from gesture.codec.config import CodecTrainConfig
 from gesture.codec.losses import RegionLoss, integrate_root, laplacian, log_map, log_speed_error, velocity
 from gesture.motion import integrate_velocity
 from gesture.regions import motion_to_features
@@ -86,6 +88,22 @@ def test_log_speed_term_only_when_weighted(region):
     weighted = RegionLoss(region, log_speed_weight=0.5)(pred, target)
     assert float(weighted["log_speed"]) > 0
     assert float(weighted["total"]) > float(RegionLoss(region)(pred, target)["total"])
+
+
+def test_expression_mse_punishes_a_missed_blink_more_than_l1_does():
+    rest = torch.zeros(1, 50, 106)  # (B, T, face feats): jaw 6D + 100 expressions, all at rest
+    blinks = rest.clone()
+    blinks[:, ::10, 6:12] = 1.5  # a rare, large event on a few coefficients
+    plain, weighted = RegionLoss("face"), RegionLoss("face", expression_mse_weight=20.0)
+    assert "expressions_mse" not in plain(rest, blinks)
+    missed = weighted(rest, blinks)  # predicting rest: the median, which L1 prefers
+    assert float(missed["expressions_mse"]) > 4 * float(missed["expressions_l1"])
+
+
+def test_negative_loss_weights_are_config_errors():
+    for name in ("log_speed_weight", "expression_mse_weight"):
+        with pytest.raises(ConfigError, match=f"train.{name}: must be >= 0"):
+            CodecTrainConfig(**{name: -1.0})
 
 
 def test_commitment_ramp():

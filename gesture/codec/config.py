@@ -123,6 +123,7 @@ class CodecTrainConfig:
     seed: int = 0
     log_speed_weight: float = 0.0  # not in the reference: see gesture.codec.losses
     speed_floor_mps: float = 0.005
+    expression_mse_weight: float = 0.0  # not in the reference: see gesture.codec.losses
 
     def __post_init__(self) -> None:
         _check_positive("train", lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
@@ -131,9 +132,11 @@ class CodecTrainConfig:
         _check_rate("train", random_crop_rate=self.random_crop_rate)
         if self.window_frames % 2:
             raise ConfigError(f"train.window_frames: must be even (2 frames per step), got {self.window_frames}")
-        if self.commitment_ramp_steps < 0 or self.holdout_seconds < 0 or self.log_speed_weight < 0:
-            raise ConfigError("train.commitment_ramp_steps, train.holdout_seconds and train.log_speed_weight: "
-                              "must be >= 0")
+        non_negative = {"commitment_ramp_steps": self.commitment_ramp_steps, "holdout_seconds": self.holdout_seconds,
+                        "log_speed_weight": self.log_speed_weight, "expression_mse_weight": self.expression_mse_weight}
+        for name, value in non_negative.items():
+            if value < 0:
+                raise ConfigError(f"train.{name}: must be >= 0, got {value}")
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,9 @@ Optional, outside the reference (`log_speed_weight` > 0, used by the default dec
 log joint speed, speed = sqrt(|v|^2 + floor^2) in m/s, on the joints BeatAlign reads. Position and velocity
 MSE hardly see millimetre-per-second wobble during holds and listening, yet each wobble is a velocity
 minimum, i.e. a motion beat; in log speed a slow segment weighs as much as a stroke.
+Also optional (`expression_mse_weight` > 0, used by the default face codec): the MSE of the expressions. The L1
+term alone is minimised by the median, and blinks, brow raises and smiles are rare events whose median is
+rest: a small face codec trained on L1 learned a face that never blinks.
 SMPL-X vertex terms need a licensed body model and are not computed here. Joint positions come
 from `gesture.skeleton.forward_kinematics` on the given skeleton (default: the built-in one), with
 every joint outside the region at rest and no translation (the lower body adds its integrated root).
@@ -106,11 +109,12 @@ class RegionLoss(nn.Module):
     """`loss(pred, target) -> dict` of weighted terms and their sum under "total"."""
 
     def __init__(self, region: str, skeleton: Skeleton | None = None, log_speed_weight: float = 0.0,
-                 speed_floor_mps: float = 0.005) -> None:
+                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0) -> None:
         super().__init__()
         if region not in ("upper", "lower", "face"):
             raise ValueError(f"region must be upper, lower or face, got {region!r}")
         self.region, self.log_speed_weight, self.speed_floor_mps = region, log_speed_weight, speed_floor_mps
+        self.expression_mse_weight = expression_mse_weight
         self.skeleton = skeleton or Skeleton.default()
         joints = {"upper": UPPER_JOINTS, "lower": LOWER_JOINTS, "face": (JAW_JOINT,)}[region]
         self.joints = list(joints)
@@ -144,6 +148,8 @@ class RegionLoss(nn.Module):
         else:
             expr_p, expr_t = pred[..., FACE_EXPRESSION_SLICE], target[..., FACE_EXPRESSION_SLICE]
             terms["expressions_l1"] = 6 * F.l1_loss(expr_p, expr_t)
+            if self.expression_mse_weight:
+                terms["expressions_mse"] = self.expression_mse_weight * F.mse_loss(expr_p, expr_t)
             terms["expression_dynamics"] = 10 * _dynamics(expr_p, expr_t)
         terms["total"] = torch.stack(list(terms.values())).sum()
         return terms
