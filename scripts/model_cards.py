@@ -24,6 +24,7 @@ for r in ('upper', 'lower', 'face'):
         rows.append(f"| {r}{stage} | {last['step']} | {last['train'][key]:.2f} | {last['heldout'][key]:.2f} | "
                     f"{last['train']['feature_mse']:.5f} | {last['heldout']['feature_mse']:.5f} |")
         tuned += [r] if stage else []
+FACE_STEPS = json.loads((W / 'codec_face.json').read_text())['last']['step']
 size = {r: (S / 'codecs' / r / 'model.safetensors').stat().st_size / 1e6 for r in ('upper', 'lower', 'face')}
 
 
@@ -54,7 +55,9 @@ face {size['face']:.1f} MB.
 ## Config
 `configs/codec/default_small.yaml` (each region's `config.yaml` here is the full dump): latent 128, 64 SEANet
 filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch_size']} windows of up to
-{CODEC['window_frames']} frames, {CODEC['steps']} steps, StepLR ×0.8 every {CODEC['lr_step_every']} steps.
+{CODEC['window_frames']} frames, {CODEC['steps']} steps, StepLR ×0.8 every {CODEC['lr_step_every']} steps. The face
+codec trains for {FACE_STEPS} steps with an expression MSE (weight {CODEC['expression_mse_weight']:g}) beside the
+reference's L1: with L1 alone it reconstructed a face that never blinks.
 Then the decoder half is fine-tuned for {' and '.join(tuned) or 'no region'}, with the encoder and quantizer
 frozen (the codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr
 {DECODER['lr']:g}, batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`), with the

@@ -22,7 +22,8 @@ SEED=${SEED:-0}
 BEAT2_CLIP=${BEAT2_CLIP:-../shared/data/beat2/2_scott_0_1_1}
 CODEC_CONFIG=${CODEC_CONFIG:-configs/codec/default_small.yaml}
 LM_CONFIG=${LM_CONFIG:-configs/lm/default_small.yaml}
-CODEC_STEPS=${CODEC_STEPS:-}
+CODEC_STEPS=${CODEC_STEPS:-}  # all three regions (default: the config's, and FACE_CODEC_STEPS for the face)
+FACE_CODEC_STEPS=${FACE_CODEC_STEPS:-8000}  # the face needs twice the config's steps to carry blinks as well as the jaw
 DECODER_CONFIG=${DECODER_CONFIG:-configs/codec/default_small_finetune.yaml}
 DECODER_REGIONS=${DECODER_REGIONS:-upper lower}  # the two that move the joints BeatAlign reads
 DECODER_STEPS=${DECODER_STEPS:-}
@@ -60,10 +61,12 @@ mix_data() {  # mix_data DIR N: a BEAT2-layout directory of the first N syntheti
 }
 
 train_codecs() {  # the three regions in parallel, each niced and single-threaded
-  local region pids=()
+  local region steps pids=()
   for region in upper lower face; do
+    steps=$CODEC_STEPS
+    if [ -z "$steps" ] && [ "$region" = face ]; then steps=$FACE_CODEC_STEPS; fi
     "${NICE[@]}" "$PY" -m gesture.train_codec --config "$CODEC_CONFIG" --region "$region" --data "$WORK/cache" \
-      --out "$WORK/codecs/$region" ${CODEC_STEPS:+--steps "$CODEC_STEPS"} > "$WORK/codec_$region.json" \
+      --out "$WORK/codecs/$region" ${steps:+--steps "$steps"} > "$WORK/codec_$region.json" \
       2> "$WORK/codec_$region.log" &
     pids+=($!)
   done
