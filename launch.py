@@ -15,7 +15,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: every stage 
 import argparse  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
+import socket  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 import uuid  # noqa: E402
 from dataclasses import asdict, replace  # noqa: E402
@@ -26,9 +28,10 @@ import yaml  # noqa: E402
 from agent.config import ConfigError  # noqa: E402
 from agent.io.audio_file import AudioFileError, load_audio  # noqa: E402
 from agent.io.sources import NoAudioDevice, check_input_device  # noqa: E402
+from agent.bus import stage_address  # noqa: E402
 from agent.latency import format_table  # noqa: E402
 from agent.sections import AppConfig, load_app_config  # noqa: E402
-from agent.stage import RunContext  # noqa: E402
+from agent.stage import SUPERVISOR, RunContext  # noqa: E402
 from agent.supervisor import Supervisor, run_worker  # noqa: E402
 from agent.timing import SAMPLE_RATE_HZ  # noqa: E402
 
@@ -122,21 +125,89 @@ def check_inputs(app: AppConfig) -> None:
         check_input_device(app.io.input_device)
 
 
+def check_report_dir(app: AppConfig) -> None:
+    if app.run.report_dir and Path(app.run.report_dir).exists() and not Path(app.run.report_dir).is_dir():
+        raise ConfigError(f"--report {app.run.report_dir}: exists and is not a directory; give a directory")
+
+
+def check_mp4_target(app: AppConfig) -> None:
+    """The MP4's directory must take a file now, not after every stage has started."""
+    if "render" not in app.run.local_stages or not app.render.mp4_path:
+        return
+    path = Path(app.render.mp4_path)
+    if path.is_dir():
+        raise ConfigError(f"--mp4 {path}: is a directory; give a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.probe-"):
+            pass
+    except OSError as e:
+        raise ConfigError(f"--mp4 {path}: cannot write there ({e.strerror or e})") from None
+
+
+def check_checkpoints(app: AppConfig) -> None:
+    """The shipped gesture stage needs its checkpoints: say so now, not from inside a started stage."""
+    if "gesture" not in app.run.local_stages or "gesture" in app.run.components:
+        return
+    for key, what in (("lm_checkpoint", "a directory written by python -m gesture.train_lm"),
+                      ("codec_checkpoints", "a directory with the upper/, lower/ and face/ codecs")):
+        path = getattr(app.gesture, key)
+        if path is None:
+            raise ConfigError(f"gesture.{key}: required ({what}); the config sets none")
+        if not Path(path).is_dir():
+            raise ConfigError(f"gesture.{key}: {path} is not a directory ({what})")
+
+
+def check_ports(app: AppConfig, worker: bool) -> None:
+    """Every tcp port this host will listen on must be free: one line naming the port and the option."""
+    bindings = [s for s in app.run.local_stages]
+    if not worker:
+        bindings += [SUPERVISOR] + (["dashboard"] if app.dashboard.enabled else [])
+    for stage in bindings:
+        address = stage_address(stage, app.bus, Path(tempfile.gettempdir()))
+        if not address.startswith("tcp://"):
+            continue
+        host, _, port = address[len("tcp://"):].rpartition(":")
+        option = f"bus.endpoints.{stage}" if stage in app.bus.endpoints else "bus.base_port"
+        if not _port_free("" if host == "*" else host.strip("[]"), int(port)):
+            raise ConfigError(f"{option}: tcp port {port} on {host} ({stage}) is in use, perhaps by another run; "
+                              f"set another {option}")
+    if app.dashboard.enabled and not worker and app.dashboard.port:
+        host, port = app.dashboard.host, app.dashboard.port
+        if not _port_free(host, port):
+            raise ConfigError(f"dashboard.port: {host}:{port} is in use, perhaps by another run's dashboard; "
+                              f"set another dashboard.port (0 takes any free port)")
+
+
+def _port_free(host: str, port: int) -> bool:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as ZeroMQ and aiohttp listen
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     try:
         speak_s = len(load_audio(args.speak, SAMPLE_RATE_HZ)) / SAMPLE_RATE_HZ if args.speak else None
         app = load_app_config(args.config, [*mode_overrides(args, speak_s), *args.overrides])
+        check_report_dir(app)
         if args.character is not None:
             app = with_character(app, args.character)
         app = with_dialogue_spec(app)
         check_inputs(app)
+        check_checkpoints(app)
+        check_mp4_target(app)
+        check_ports(app, args.worker)
     except (ConfigError, AudioFileError, NoAudioDevice) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USAGE
-    run_dir = app.run.resolve_report_dir(time.strftime("%Y%m%d-%H%M%S"))
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = app.run.make_report_dir(time.strftime("%Y%m%d-%H%M%S"))
     (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False))
     run = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
     if args.worker:
@@ -145,7 +216,7 @@ def main(argv=None) -> int:
     code = supervisor.run()
     summary = supervisor.latency.write(run_dir, supervisor.counters(),
                                        {s: asdict(e) for s, e in supervisor.clock.estimates().items()},
-                                       supervisor.stream_timing())
+                                       supervisor.stream_timing(), live=app.run.live)
     print(format_table(summary))
     print(f"report: {run_dir}/ (latency.json, latency.png, transcript.json, <stage>.log)")
     return code

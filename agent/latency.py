@@ -3,6 +3,10 @@
 The end-to-end latency of a step is `sink stamp of the step's last frame − t_origin_ns` (the capture time of
 the step's last audio sample). Each stage's share is split into `wait` (transport and queueing since the
 previous stage published) and `compute` (from taking the message to publishing the result).
+
+An offline run is paced by its credit window, not by the clock: a step waits behind the steps in flight, so its
+"end to end" time is queueing, not latency. Its table shows what an offline run is measured by instead:
+throughput (real-time factor, rendered frames per second) and each stage's compute time and CPU time.
 """
 
 from __future__ import annotations
@@ -56,17 +60,24 @@ class LatencyRecorder:
             seg["total"].append((stamps[stage] - previous) / NS_PER_MS)
             previous = stamps[stage]
 
-    def summary(self, counters: dict[str, dict], clock: dict[str, dict], timing: dict | None = None) -> dict:
+    def summary(self, counters: dict[str, dict], clock: dict[str, dict], timing: dict | None = None,
+                live: bool = True) -> dict:
         mean_e2e = float(np.mean(self.e2e_ms)) if self.e2e_ms else float("nan")
         stages = {}
         for stage, seg in self.segments_ms.items():
             stages[stage] = {name: percentiles(values) for name, values in seg.items()}
             stages[stage]["share"] = round(float(np.mean(seg["total"])) / mean_e2e, 4) if self.e2e_ms else None
-        return {"steps_measured": len(self.e2e_ms), "end_to_end_ms": percentiles(self.e2e_ms), "stages": stages,
-                "counters": counters, "clock_offsets": clock, "stream": timing or {}}
+        out = {"mode": "live" if live else "offline", "steps_measured": len(self.e2e_ms),
+               "end_to_end_ms": percentiles(self.e2e_ms), "stages": stages, "counters": counters,
+               "clock_offsets": clock, "stream": timing or {}}
+        if not live:
+            out["end_to_end_note"] = "offline: queueing behind the credit window, not latency"
+            out["throughput"] = throughput(timing or {}, counters, self.pipeline[-1])
+        return out
 
-    def write(self, run_dir: Path, counters: dict[str, dict], clock: dict[str, dict], timing: dict | None = None) -> dict:
-        summary = self.summary(counters, clock, timing)
+    def write(self, run_dir: Path, counters: dict[str, dict], clock: dict[str, dict], timing: dict | None = None,
+              live: bool = True) -> dict:
+        summary = self.summary(counters, clock, timing, live)
         (run_dir / "latency.json").write_text(json.dumps(summary, indent=2))
         if self.e2e_ms:
             self._plot(run_dir / "latency.png")
@@ -96,8 +107,20 @@ class LatencyRecorder:
         plt.close(fig)
 
 
+def throughput(timing: dict, counters: dict[str, dict], sink: str) -> dict:
+    """An offline run's speed: real-time factor, rendered frames per second, and each stage's CPU time."""
+    wall_s = timing.get("stream_wall_s")
+    frames = counters.get(sink, {}).get("published") if sink == "render" else None
+    out = {"realtime_factor": timing.get("realtime_factor"), "wall_s": wall_s, "audio_s": timing.get("audio_s"),
+           "frames": frames, "frames_per_s": round(frames / wall_s, 2) if frames and wall_s else None,
+           "cpu_s": {stage: c.get("cpu_s") for stage, c in counters.items()}}
+    return out
+
+
 def format_table(summary: dict) -> str:
-    """A short table for the terminal."""
+    """A short table for the terminal: latency live, throughput and compute offline."""
+    if summary.get("mode") == "offline":
+        return format_offline_table(summary)
     rows = [("stage", "p50 ms", "p95 ms", "p99 ms", "max ms", "share", "dropped", "lost")]
     for stage, stats in summary["stages"].items():
         total = stats["total"]
@@ -114,6 +137,34 @@ def format_table(summary: dict) -> str:
     pace = (f"; {stream['audio_s']:.1f} s of audio in {stream['stream_wall_s']:.1f} s "
             f"({stream['realtime_factor']:.2f}x real time)") if stream else ""
     return "\n".join(lines) + f"\n({summary['steps_measured']} steps measured{pace})"
+
+
+def format_offline_table(summary: dict) -> str:
+    rows = [("stage", "compute p50 ms", "p95 ms", "mean ms", "CPU s", "messages", "dropped", "lost")]
+    for stage, stats in summary["stages"].items():
+        compute = stats["compute"]
+        c = summary["counters"].get(stage, {})
+        rows.append((stage, *(_fmt(compute.get(k)) for k in ("p50", "p95", "mean")), _fmt(c.get("cpu_s")),
+                     str(c.get("sent_steps" if stage == summary_source(summary) else "handled", 0)),
+                     str(c.get("dropped", 0) + c.get("frames_dropped", 0)), str(c.get("lost", 0))))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+             for r in rows]
+    lines.insert(1, "-" * len(lines[0]))
+    t = summary.get("throughput") or {}
+    head = "offline run (paced by the credit window: throughput, not latency)"
+    if t.get("realtime_factor") is not None:
+        head += (f"\nthroughput: {t['audio_s']:.1f} s of audio in {t['wall_s']:.1f} s = "
+                 f"{t['realtime_factor']:.2f}x real time")
+        if t.get("frames_per_s") is not None:
+            head += f"; {t['frames']} frames rendered, {t['frames_per_s']:.1f} frames/s"
+    return head + "\n" + "\n".join(lines) + (f"\n(compute: from taking a step to publishing it, per step; "
+                                             f"CPU s: the stage process's CPU time; {summary['steps_measured']} "
+                                             f"steps measured)")
+
+
+def summary_source(summary: dict) -> str:
+    return next(iter(summary["stages"]))
 
 
 def _fmt(value) -> str:

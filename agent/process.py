@@ -6,6 +6,7 @@ import ctypes
 import importlib
 import logging
 import os
+import shutil
 import signal
 import sys
 from dataclasses import dataclass
@@ -62,6 +63,7 @@ def load_factory(path: str) -> Callable[..., Any]:
 def stage_main(launch: StageLaunch) -> None:
     """Run one stage until STOP, SIGTERM or the end of the stream."""
     die_with_parent()
+    supervisor_pid = os.getppid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the supervisor decides
     redirect_output(launch.log_path)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
@@ -78,8 +80,20 @@ def stage_main(launch: StageLaunch) -> None:
         log.exception("failed to start")
         sys.exit(EXIT_STARTUP_FAILED)
     signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
-    runner.run()
+    try:
+        runner.run()
+    finally:
+        remove_ipc_dir_if_orphaned(launch.ipc_dir, supervisor_pid)
     log.info("stopped")
+
+
+def remove_ipc_dir_if_orphaned(ipc_dir: Path, supervisor_pid: int) -> None:
+    """The supervisor was killed (it cannot clean up): the run's private socket directory goes with its stages.
+
+    Only a private `ecas-*` directory is removed, never a shared one such as a worker's temp directory.
+    """
+    if os.getppid() != supervisor_pid and Path(ipc_dir).name.startswith("ecas-"):
+        shutil.rmtree(ipc_dir, ignore_errors=True)
 
 
 def _split(made: Any) -> tuple[Any, Any]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Sequence
@@ -21,6 +22,9 @@ class BusConfig:
 
     `transport: ipc` binds `ipc://<private run dir>/<stage>.sock`; `tcp` binds `tcp://<host>:<base_port + i>`.
     `endpoints` pins a stage to an explicit address (`tcp://gpu-box:5601`) to split the loop across hosts.
+    A stage fails the run when its handler fails on `max_handler_failures` messages in a row, or when it
+    publishes nothing for `stall_timeout_s` while its upstream stage is ahead of it (a heartbeat alone does
+    not count as progress).
     """
 
     transport: Literal["ipc", "tcp"] = "ipc"
@@ -33,9 +37,15 @@ class BusConfig:
     heartbeat_timeout_s: float = 5.0
     ready_timeout_s: float = 180.0
     stop_timeout_s: float = 1.5
+    max_handler_failures: int = 16
+    stall_timeout_s: float = 30.0
 
     def __post_init__(self):
-        for name in ("live_queue_steps", "credit_window_steps"):
+        if not 0 <= self.base_port <= 65535 - len(STAGES) - 2:
+            raise ConfigError(f"bus.base_port: must be a tcp port (0-{65535 - len(STAGES) - 2}), got {self.base_port}")
+        if self.stall_timeout_s <= 0:
+            raise ConfigError(f"bus.stall_timeout_s: must be > 0, got {self.stall_timeout_s}")
+        for name in ("live_queue_steps", "credit_window_steps", "max_handler_failures"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"bus.{name}: must be >= 1, got {getattr(self, name)}")
         if not 0 < self.heartbeat_s < self.heartbeat_timeout_s:
@@ -87,6 +97,8 @@ class RunConfig:
         return self.stages if self.spawn is None else tuple(s for s in self.stages if s in self.spawn)
 
     def __post_init__(self):
+        if self.seed < 0:
+            raise ConfigError(f"run.seed: must be >= 0 (--seed), got {self.seed}")
         if not self.stages or self.stages[0] != "io" or list(self.stages) != [s for s in STAGES if s in self.stages]:
             raise ConfigError(f"run.stages: must start with io and keep the order {', '.join(STAGES)}; "
                               f"got {list(self.stages)}")
@@ -99,8 +111,20 @@ class RunConfig:
             if ":" not in factory:
                 raise ConfigError(f"run.components.{stage}: expected 'module:function', got {factory!r}")
 
-    def resolve_report_dir(self, now: str) -> Path:
-        return Path(self.report_dir) if self.report_dir else Path("runs") / now
+    def make_report_dir(self, now: str) -> Path:
+        """`report_dir` (created if needed), or a new `runs/<now>-<suffix>/` that no other run shares."""
+        if self.report_dir:
+            path = Path(self.report_dir)
+            path.mkdir(parents=True, exist_ok=True)
+            return path
+        Path("runs").mkdir(exist_ok=True)
+        while True:
+            path = Path("runs") / f"{now}-{secrets.token_hex(3)}"
+            try:
+                path.mkdir()  # atomic: exactly one run creates it
+                return path
+            except FileExistsError:
+                continue
 
 
 @dataclass(frozen=True)

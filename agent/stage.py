@@ -5,8 +5,15 @@ A stage supplies a `Component` (and the io stage also a `Source`). The runner:
 - reports READY in its heartbeats once it has heard every upstream publisher and the supervisor, so ZeroMQ's
   late-joiner loss can never eat the first step; the source starts only on the supervisor's START;
 - copies step, t_origin_ns and stamps from each input to its outputs and stamps `<stage>.in` / `<stage>`;
-- in offline mode, lets the source run at most `credit_window_steps` ahead of the sink;
-- logs and skips a message whose handler raises, and carries on.
+- in offline mode, lets the source run at most `credit_window_steps` ahead of the sink, blocking on the socket
+  (never spinning) while it waits for the sink's PROGRESS;
+- logs and skips a message whose handler raises, and carries on; a handler that raises `StageFailed` (its output
+  cannot be written), or fails on `bus.max_handler_failures` messages in a row, fails the stage: it stops
+  handling data and reports the error in its heartbeats, and the supervisor ends the run with it.
+
+Heartbeats carry the stage's counters, among them `last_step_out` (the last step it published) and `cpu_s` (its
+process's CPU time), and the partial files its component is writing, so the supervisor can detect a stage
+that makes no progress while its input waits, and remove a killed stage's partial files.
 """
 
 from __future__ import annotations
@@ -38,6 +45,13 @@ DATA_INPUTS = {  # stage -> {upstream stage: topic}; the io stage's speaker inpu
 }
 SUPERVISOR = "supervisor"
 MAX_POLL_MS = 50
+
+
+class StageFailed(RuntimeError):
+    """Raised by a component's handler when no later message can succeed (e.g. its output cannot be written).
+
+    The message is one line naming what failed, e.g. "cannot write out.mp4: [Errno 28] No space left on device".
+    """
 
 
 @dataclass(frozen=True)
@@ -126,7 +140,11 @@ class StageRunner:
         self.started = False
         self.stopping = False
         self.handler_errors = 0
+        self.failures_in_a_row = 0
+        self.fatal_error: Optional[str] = None
         self.handled = 0
+        self.last_step_out = -1
+        self.published = 0  # messages on the stage's output topic
         self.next_step = 0
         self.source_t0_ns = 0
         self.sink_progress = -1
@@ -138,7 +156,9 @@ class StageRunner:
             while not self.stopping:
                 self._poll(self._poll_timeout_ms())
                 self._take_controls()
-                if self.started and self.source is not None and self.state != StageState.DONE:
+                if self.fatal_error is not None:
+                    self.sub.queue.clear()  # a failed stage takes no more data; the supervisor stops the run
+                elif self.started and self.source is not None and self.state != StageState.DONE:
                     self._emit_source()
                 if self.sub.queue:
                     self._handle(self.sub.queue.popleft())
@@ -160,9 +180,14 @@ class StageRunner:
             self.stopping = True
 
     def _poll_timeout_ms(self) -> int:
-        if self.source is not None and self.started and self.state != StageState.DONE:
-            return 0 if self.source.paced else min(MAX_POLL_MS, max(0, math.ceil(self._due_in_ms())))
-        return MAX_POLL_MS
+        """How long to block on the socket: until the next source block is due, or for news (data, PROGRESS)."""
+        if self.source is None or not self.started or self.state == StageState.DONE or self.fatal_error:
+            return MAX_POLL_MS
+        if self.source.paced:
+            return 0  # the source's own next_block waits for the device
+        if self._waiting_for_credit():
+            return MAX_POLL_MS  # the sink's PROGRESS arrives on the socket and ends the wait
+        return min(MAX_POLL_MS, max(0, math.ceil(self._due_in_ms())))
 
     # ---- control ---------------------------------------------------------------------------------------------
     def _take_controls(self) -> None:
@@ -196,12 +221,23 @@ class StageRunner:
         if now < self._next_heartbeat_ns:
             return
         self._next_heartbeat_ns = now + int(self.bus.heartbeat_s * 1e9)
-        self.pub.send(Control(command=Command.HEARTBEAT, detail={"state": self.state.value,
-                                                                 "counters": self.counters()}))
+        self.pub.send(Control(command=Command.HEARTBEAT, detail=self._heartbeat_detail(self.state.value)))
 
-    def counters(self) -> dict[str, int]:
+    def _heartbeat_detail(self, state: str) -> dict:
+        detail = {"state": state, "counters": self.counters(), "partial_files": self._partial_files()}
+        if self.fatal_error is not None:
+            detail["error"] = self.fatal_error
+        return detail
+
+    def _partial_files(self) -> list[str]:
+        partial = getattr(self.component, "partial_files", None)
+        return [str(p) for p in partial()] if callable(partial) else []
+
+    def counters(self) -> dict[str, int | float]:
         counters = {"dropped": self.sub.dropped, "lost": self.sub.lost, "decode_errors": self.sub.decode_errors,
-                    "handler_errors": self.handler_errors, "handled": self.handled, "sent_steps": self.next_step}
+                    "handler_errors": self.handler_errors, "handled": self.handled, "sent_steps": self.next_step,
+                    "published": self.published, "last_step_out": self.last_step_out,
+                    "cpu_s": round(time.process_time(), 3)}
         extra = getattr(self.component, "counters", None)
         if callable(extra):
             counters.update(extra())
@@ -213,10 +249,18 @@ class StageRunner:
         self.handled += 1
         try:
             outputs = self.component.handle(msg)
-        except Exception:
-            self.handler_errors += 1
-            log.exception("handler failed on %s step %d from %s; skipped", msg.topic, msg.step, msg.source)
+        except StageFailed as e:
+            self._fail(str(e))
             return
+        except Exception as e:
+            self.handler_errors += 1
+            self.failures_in_a_row += 1
+            log.exception("handler failed on %s step %d from %s; skipped", msg.topic, msg.step, msg.source)
+            if self.failures_in_a_row >= self.bus.max_handler_failures:
+                self._fail(f"the handler failed on {self.failures_in_a_row} messages in a row; the last: "
+                           f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+            return
+        self.failures_in_a_row = 0
         for out in outputs:
             out.session, out.step, out.t_origin_ns = msg.session, msg.step, msg.t_origin_ns
             out.stamps = {**msg.stamps, self.name: time.monotonic_ns()}
@@ -224,8 +268,17 @@ class StageRunner:
         if self.name == self.topology.sink and msg.topic == self.topology.sink_primary_topic:
             self.pub.send(Control(command=Command.PROGRESS, detail={"step": msg.step}))
 
+    def _fail(self, error: str) -> None:
+        """Stop taking data and tell the supervisor now (and in every later heartbeat)."""
+        self.fatal_error = error
+        log.error("failed: %s", error)
+        self._next_heartbeat_ns = 0
+
     def _publish(self, out: Message) -> None:
         self.pub.send(out)
+        if out.topic == OUTPUT_TOPIC[self.name]:
+            self.last_step_out = max(self.last_step_out, out.step)
+            self.published += 1
         if self.name == self.topology.sink:
             frame_index = getattr(out, "frame_index", 0)
             self.pub.send(Metrics(session=out.session, step=out.step, t_origin_ns=out.t_origin_ns,
@@ -238,7 +291,12 @@ class StageRunner:
             self._finish()
 
     def _finish(self) -> None:
-        for out in self.component.flush():
+        try:
+            flushed = self.component.flush()
+        except StageFailed as e:
+            self._fail(str(e))
+            return
+        for out in flushed:
             out.session = self.run_ctx.session
             out.stamps = {**out.stamps, self.name: time.monotonic_ns()}
             self._publish(out)
@@ -253,11 +311,15 @@ class StageRunner:
         due_ns = self.source_t0_ns + (self.next_step + 1) * STEP_NS
         return (due_ns - time.monotonic_ns()) / 1e6 if self.run_ctx.live else 0.0
 
+    def _waiting_for_credit(self) -> bool:
+        """Offline: the source is a whole credit window ahead of the sink."""
+        return not self.run_ctx.live and self.next_step - self.sink_progress > self.bus.credit_window_steps
+
     def _emit_source(self) -> None:
         if self.source.exhausted:
             self._finish()
             return
-        if not self.run_ctx.live and self.next_step - self.sink_progress > self.bus.credit_window_steps:
+        if self._waiting_for_credit():
             return
         if not self.source.paced and self._due_in_ms() > 0:
             return
@@ -280,6 +342,6 @@ class StageRunner:
             if self.source is not None:
                 self.source.close()
             self.state = StageState.DONE
-            self.pub.send(Control(command=Command.HEARTBEAT, detail={"state": "done", "counters": self.counters()}))
+            self.pub.send(Control(command=Command.HEARTBEAT, detail=self._heartbeat_detail("done")))
             self.pub.close()
             self.sub.close()

@@ -2,15 +2,20 @@
 
 Startup: spawn, wait until every stage reports READY (it has heard all its publishers), measure each stage's
 clock offset (NTP-style PING/PONG), then START. Running: collect heartbeats, latency samples and counters.
-A stage that dies or stops beating ends the run with its name, exit code and the tail of its log.
-Stop: STOP on the bus, then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the private ipc
-directory is removed.
+A stage that dies or stops beating ends the run with its name, exit code and the tail of its log; so does a
+stage that reports a failure (e.g. its MP4 cannot be written), in one line, and one that publishes nothing for
+`bus.stall_timeout_s` while its upstream stage is ahead of it.
+Stop: STOP on the bus, then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the partial files
+the stages reported are removed (a killed stage cannot remove its own), and so is the private ipc directory.
+The directory is named `ecas-<supervisor pid>-*`: a run whose launcher was killed leaves it behind, and the
+next run removes it once that pid is gone.
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import shutil
 import signal
 import tempfile
@@ -36,6 +41,7 @@ log = logging.getLogger("supervisor")
 
 LOG_TAIL_LINES = 12
 KILL_GRACE_S = 0.5
+IPC_DIR_PREFIX = "ecas-"
 
 
 class RunFailed(RuntimeError):
@@ -48,13 +54,18 @@ class StageStatus:
     state: str = "starting"
     last_beat_s: float = field(default_factory=time.monotonic)
     counters: dict = field(default_factory=dict)
+    error: Optional[str] = None  # the failure the stage reported
+    partial_files: tuple[str, ...] = ()  # files it is writing under a temporary name
+    last_step_out: int = -1
+    progress_s: float = field(default_factory=time.monotonic)  # when last_step_out last moved
 
 
 class Supervisor:
     def __init__(self, app: AppConfig, run: RunContext):
         self.app, self.run_ctx, self.pipeline = app, run, tuple(app.run.stages)
         self.factories = {**COMPONENT_FACTORIES, **app.run.components}
-        self.ipc_dir = Path(tempfile.mkdtemp(prefix="ecas-"))
+        remove_dead_runs_ipc_dirs()
+        self.ipc_dir = Path(tempfile.mkdtemp(prefix=f"{IPC_DIR_PREFIX}{os.getpid()}-"))
         self.stages: dict[str, StageStatus] = {}
         self.latency = LatencyRecorder(self.pipeline)
         self.clock = ClockSync()
@@ -69,14 +80,9 @@ class Supervisor:
     def run(self) -> int:
         """0 when the stream ended, 130 when interrupted, 1 when a stage failed."""
         previous = {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-        ctx = zmq.Context.instance()
-        self.pub = Publisher(ctx, stage_address(SUPERVISOR, self.app.bus, self.ipc_dir), SUPERVISOR,
-                             lossless=True)
-        addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
-        self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
-        addresses += [self.dashboard.address] if self.dashboard else []
-        self.sub = Subscriber(ctx, addresses, ["control", "metrics", "log"], live_queue=None)
+        self.pub = self.sub = None
         try:
+            self._open_bus()
             self._spawn()
             self._wait_ready()
             self._sync_clocks()
@@ -90,8 +96,10 @@ class Supervisor:
             self.error = str(e)
         finally:
             self._stop_all()
-            self.pub.close()
-            self.sub.close()
+            self._remove_partial_files()
+            for socket in (self.pub, self.sub):
+                if socket is not None:
+                    socket.close()
             shutil.rmtree(self.ipc_dir, ignore_errors=True)
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -99,6 +107,19 @@ class Supervisor:
             log.error("%s", self.error)
             return 1
         return 130 if self.interrupted else 0
+
+    def _open_bus(self) -> None:
+        ctx = zmq.Context.instance()
+        address = stage_address(SUPERVISOR, self.app.bus, self.ipc_dir)
+        try:
+            self.pub = Publisher(ctx, address, SUPERVISOR, lossless=True)
+        except zmq.ZMQError as e:
+            raise RunFailed(f"the supervisor cannot listen on {address} ({e}); change bus.base_port or "
+                            f"bus.endpoints.supervisor") from None
+        addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
+        self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
+        addresses += [self.dashboard.address] if self.dashboard else []
+        self.sub = Subscriber(ctx, addresses, ["control", "metrics", "log"], live_queue=None)
 
     def _on_signal(self, signum, _frame) -> None:
         self.interrupted = True
@@ -170,6 +191,11 @@ class Supervisor:
         if msg.command == Command.HEARTBEAT:
             status.state = msg.detail.get("state", status.state)
             status.counters = msg.detail.get("counters", status.counters)
+            status.error = status.error or msg.detail.get("error")
+            status.partial_files = tuple(msg.detail.get("partial_files", status.partial_files))
+            if status.counters.get("last_step_out", -1) != status.last_step_out:
+                status.last_step_out = status.counters.get("last_step_out", -1)
+                status.progress_s = status.last_beat_s
         elif msg.command == Command.PONG:
             self.clock.add(msg.source, msg.detail["t0"], msg.detail["t1"], msg.detail["t2"], time.monotonic_ns())
         elif msg.command == Command.EOS:
@@ -188,15 +214,34 @@ class Supervisor:
             if code is not None:
                 raise RunFailed(f"stage '{name}' died (exit code {code}). Last lines of its log:\n"
                                 f"{_tail(self.run_ctx.run_dir / f'{name}.log')}")
+            if status.error is not None:
+                raise RunFailed(f"stage '{name}' failed: {status.error}")
             if status.state != "starting" and now - status.last_beat_s > self.app.bus.heartbeat_timeout_s:
                 raise RunFailed(f"stage '{name}' stopped responding (no heartbeat for "
                                 f"{now - status.last_beat_s:.1f} s)")
+        self._check_progress(now)
+
+    def _check_progress(self, now: float) -> None:
+        """A stage that publishes nothing while its upstream stage is ahead of it has stalled."""
+        if self.started_s is None:
+            return
+        for upstream, name in zip(self.pipeline, self.pipeline[1:]):
+            status, ahead = self.stages[name], self.stages[upstream]
+            idle_s = now - max(status.progress_s, self.started_s)
+            if status.state == "running" and ahead.last_step_out > status.last_step_out \
+                    and idle_s > self.app.bus.stall_timeout_s:
+                raise RunFailed(f"stage '{name}' made no progress for {idle_s:.0f} s while its input waited "
+                                f"(it published up to step {status.last_step_out}, '{upstream}' up to step "
+                                f"{ahead.last_step_out}; bus.stall_timeout_s={self.app.bus.stall_timeout_s:g}); "
+                                f"see {self.run_ctx.run_dir / f'{name}.log'}")
 
     # ---- stopping --------------------------------------------------------------------------------------------
     def _send(self, command: Command, detail: Optional[dict] = None) -> None:
         self.pub.send(Control(command=command, detail=detail or {}))
 
     def _stop_all(self) -> None:
+        if self.pub is None:
+            return
         deadline = time.monotonic() + self.app.bus.stop_timeout_s
         self._send(Command.STOP)
         processes = [s.process for s in self.stages.values() if s.process]
@@ -208,6 +253,14 @@ class Supervisor:
         terminate(processes)
         self.sub.poll_into_queue()
         self._consume()
+
+    def _remove_partial_files(self) -> None:
+        """A stage that was killed while writing cannot remove its temporary file; a clean one already has."""
+        for name, status in self.stages.items():
+            for path in status.partial_files if status.process is not None else ():
+                if Path(path).exists():
+                    Path(path).unlink(missing_ok=True)
+                    log.info("removed %s's partial file %s", name, path)
 
     def stream_timing(self) -> dict:
         """Wall time from START to the sink's end of stream, against the audio it carried."""
@@ -263,6 +316,37 @@ def run_worker(app: AppConfig, run: RunContext) -> int:
     for name, code in failed.items():
         log.error("stage '%s' exited with code %s; see %s", name, code, run.run_dir / f"{name}.log")
     return 130 if stop else (1 if failed else 0)
+
+
+def remove_dead_runs_ipc_dirs(tmp_dir: Optional[Path] = None) -> list[Path]:
+    """Remove `ecas-<pid>-*` directories of this user whose supervisor process no longer exists.
+
+    A live run's directory is never touched: its pid exists (a recycled pid only delays the clean-up).
+    """
+    removed = []
+    for path in Path(tmp_dir or tempfile.gettempdir()).glob(f"{IPC_DIR_PREFIX}*-*"):
+        pid = path.name[len(IPC_DIR_PREFIX):].split("-", 1)[0]
+        try:
+            if not pid.isdigit() or path.is_symlink() or path.stat().st_uid != os.getuid() or _alive(int(pid)):
+                continue
+        except FileNotFoundError:
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        removed.append(path)
+    if removed:
+        log.info("removed %d socket director%s of runs that ended without cleaning up", len(removed),
+                 "y" if len(removed) == 1 else "ies")
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _tail(path: Path, lines: int = LOG_TAIL_LINES) -> str:

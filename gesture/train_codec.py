@@ -179,7 +179,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_codec_config(args.config)
     except ConfigError as err:
-        parser.error(str(err))
+        return _usage_error(str(err))
+    if args.steps is not None and args.steps < 1:
+        return _usage_error(f"--steps: must be >= 1, got {args.steps}")
+    if not args.data.exists():
+        return _usage_error(f"--data {args.data}: no such file or directory")
     steps = args.steps or config.train.steps
     out = args.out or Path("runs") / f"codec_{args.region}"
     skeleton = Skeleton.from_smplx_model(args.smplx_model) if args.smplx_model else Skeleton.default()
@@ -198,6 +202,12 @@ def main(argv: list[str] | None = None) -> int:
         final = trainer.history["eval"][-1]
         print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final}, indent=1))
     return 0
+
+
+def _usage_error(message: str) -> int:
+    """A user mistake: one line, exit code 2."""
+    print(f"error: {message}", file=sys.stderr)
+    return 2
 
 
 def _start_distributed(device: torch.device) -> torch.device:

@@ -15,12 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Optional
 
 import torch
 
-from agent.config import build_dataclass, load_yaml
+from agent.config import ConfigError, build_dataclass, load_yaml
 from gesture.config import LMConfig, LMFileConfig, LMTrainConfig
 from gesture.lm.checkpoint import load_lm, load_train_state, save_lm, save_train_state
 from gesture.lm.data import LMBatch, LMDataset
@@ -171,7 +172,7 @@ def _checkpoint(model, optimizer, scheduler, generator, history, out_dir: Path, 
     save_loss_curve(history, out_dir / "loss_curve.png")
 
 
-def main(argv: Optional[list[str]] = None) -> None:
+def main(argv: Optional[list[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, required=True, help="configs/lm/*.yaml")
     parser.add_argument("--data", type=Path, required=True, help="directory of npz recordings (gesture.lm.data)")
@@ -182,10 +183,24 @@ def main(argv: Optional[list[str]] = None) -> None:
     args = parser.parse_args(argv)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     torch.set_num_threads(1)
-    file_cfg = build_dataclass(LMFileConfig, load_yaml(args.config))
+    try:
+        file_cfg = build_dataclass(LMFileConfig, load_yaml(args.config), str(args.config))
+    except ConfigError as err:
+        return _usage_error(str(err))
+    if args.epochs is not None and args.epochs < 1:
+        return _usage_error(f"--epochs: must be >= 1, got {args.epochs}")
+    if not args.data.is_dir() or not any(args.data.glob("*.npz")):
+        return _usage_error(f"--data {args.data}: not a directory of npz recordings (python -m gesture.data.tokenize)")
     args.out.mkdir(parents=True, exist_ok=True)
     train(file_cfg, args.data, args.out, args.codecs, args.epochs, progress=not args.no_progress)
+    return 0
+
+
+def _usage_error(message: str) -> int:
+    """A user mistake: one line, exit code 2."""
+    print(f"error: {message}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -2,7 +2,9 @@
 
 The file is written under a temporary name next to the target and renamed on a successful `close()`;
 `close(commit=False)`, an exception inside `with Mp4Writer(...)` or Ctrl-C removes it, so a partial MP4
-is never left behind.
+is never left behind by the writer; a process killed while writing leaves `tmp_path`, which its supervisor
+removes (the render stage reports it). A write that fails (disk full, file too large, permission) raises
+`Mp4WriteError`, one line naming the target and the OS error.
 """
 
 from __future__ import annotations
@@ -19,6 +21,14 @@ from agent.timing import MOTION_FPS, SAMPLE_RATE_HZ
 
 class Mp4Error(RuntimeError):
     """Bad input to the MP4 writer."""
+
+
+class Mp4WriteError(Mp4Error):
+    """The file cannot be written; no later frame will fare better."""
+
+    def __init__(self, path: Path, err: OSError):
+        super().__init__(f"cannot write {path} ([Errno {err.errno}] {err.strerror or err})"
+                         if err.errno else f"cannot write {path} ({err})")
 
 
 class Mp4Writer:
@@ -38,9 +48,12 @@ class Mp4Writer:
         self.sample_rate_hz, self.channels = sample_rate_hz, channels
         self.samples_per_frame = sample_rate_hz // fps
         self.frames_written = 0
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp_path = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
-        self._container = av.open(str(self._tmp_path), mode="w", format="mp4")
+        self.tmp_path = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._container = av.open(str(self.tmp_path), mode="w", format="mp4")
+        except OSError as err:
+            raise Mp4WriteError(self.path, err) from None
         self._video = self._container.add_stream("libx264", rate=fps)
         self._video.width, self._video.height, self._video.pix_fmt = width, height, "yuv420p"
         self._video.options = {"crf": str(crf), "preset": preset}
@@ -63,12 +76,15 @@ class Mp4Writer:
         planar = np.ascontiguousarray(np.broadcast_to(audio, (self.samples_per_frame, self.channels)).T)  # (C, N)
         video_frame = av.VideoFrame.from_ndarray(frame_rgb, format="rgb24")
         video_frame.pts = self.frames_written
-        self._container.mux(self._video.encode(video_frame))
         audio_frame = av.AudioFrame.from_ndarray(np.clip(planar, -1.0, 1.0), format="fltp",
                                                  layout=self._audio.layout.name)
         audio_frame.sample_rate = self.sample_rate_hz
         audio_frame.pts = self.frames_written * self.samples_per_frame
-        self._container.mux(self._audio.encode(audio_frame))
+        try:
+            self._container.mux(self._video.encode(video_frame))
+            self._container.mux(self._audio.encode(audio_frame))
+        except OSError as err:
+            raise Mp4WriteError(self.path, err) from None
         self.frames_written += 1
 
     def close(self, commit: bool = True) -> Path | None:
@@ -76,19 +92,29 @@ class Mp4Writer:
         if self._closed:
             return self.path if commit else None
         self._closed = True
-        try:
-            if commit:
-                self._container.mux(self._video.encode(None))
-                self._container.mux(self._audio.encode(None))
-            self._container.close()
-        except BaseException:
-            self._tmp_path.unlink(missing_ok=True)
-            raise
         if not commit:
-            self._tmp_path.unlink(missing_ok=True)
+            self._discard()
             return None
-        os.replace(self._tmp_path, self.path)
+        try:
+            self._container.mux(self._video.encode(None))
+            self._container.mux(self._audio.encode(None))
+            self._container.close()
+        except OSError as err:
+            self.tmp_path.unlink(missing_ok=True)
+            raise Mp4WriteError(self.path, err) from None
+        except BaseException:
+            self.tmp_path.unlink(missing_ok=True)
+            raise
+        os.replace(self.tmp_path, self.path)
         return self.path
+
+    def _discard(self) -> None:
+        try:
+            self._container.close()
+        except OSError:
+            pass  # the file is deleted anyway; a write error was already reported
+        finally:
+            self.tmp_path.unlink(missing_ok=True)
 
     def __enter__(self) -> "Mp4Writer":
         return self

@@ -6,6 +6,9 @@
 The motion (25 or 30 fps, or any rate) is resampled to 25 fps (slerp for rotations). The audio (any rate,
 mono or stereo) is resampled to 24 kHz and cut or padded to exactly 960 samples per video frame. Encoding
 runs in a second thread while the next frame renders.
+
+Every input is checked before anything renders: a user mistake (a missing, empty or malformed motion file, a
+missing or non-audio WAV, a bad size or time) gets one line and exit code 2.
 """
 
 from __future__ import annotations
@@ -22,6 +25,13 @@ import numpy as np
 
 from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
 from render.renderer import CAMERA_PRESETS
+
+EXIT_USAGE = 2
+ARCHIVE_MAGIC = (b"PK\x03\x04", b"\x93NUMPY")  # an npz is a zip archive; np.load also reads a bare .npy
+
+
+class UsageError(ValueError):
+    """A bad argument or input file; one line."""
 
 
 def load_motion_25fps(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -41,7 +51,7 @@ def frame_audio(wav_path: str | Path | None, n_frames: int) -> np.ndarray:
     total = n_frames * FRAME_SAMPLES
     pcm = np.zeros(total, np.float32)
     if wav_path is not None:
-        from gesture.data.audio import load_audio
+        from agent.io.audio_file import load_audio
 
         speech = load_audio(wav_path, SAMPLE_RATE_HZ)[:total]
         pcm[:len(speech)] = speech
@@ -130,6 +140,48 @@ def render_still(motion_path, png_path, at_s: float, camera="full", width=512, h
     return Path(png_path)
 
 
+def check_motion_file(path: str | Path) -> None:
+    """The cheap checks np.load would turn into a traceback or a misleading message."""
+    path = Path(path)
+    if not path.exists():
+        raise UsageError(f"{path}: no such file")
+    if not path.is_file():
+        raise UsageError(f"{path}: is not a file")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if not head:
+        raise UsageError(f"{path}: the file is empty")
+    if not head.startswith(ARCHIVE_MAGIC):
+        raise UsageError(f"{path}: not an npz archive (a BEAT2/SMPL-X motion file with poses, trans, expressions)")
+
+
+def check_args(args: argparse.Namespace) -> tuple[int, int]:
+    """Validate the numeric options; returns (width, height)."""
+    if (args.width is None) != (args.height is None):
+        raise UsageError("--width and --height go together")
+    sizes = {"--size": args.size} if args.width is None else {"--width": args.width, "--height": args.height}
+    for name, value in sizes.items():
+        if value <= 0 or value % 2:
+            raise UsageError(f"{name}: must be a positive even number of pixels (H.264 yuv420p), got {value}")
+    width, height = (args.size, args.size) if args.width is None else (args.width, args.height)
+    if args.start < 0:
+        raise UsageError(f"--start: must be >= 0 seconds, got {args.start}")
+    if args.seconds is not None and args.seconds <= 0:
+        raise UsageError(f"--seconds: must be > 0, got {args.seconds}")
+    return width, height
+
+
+def check_inputs(args: argparse.Namespace) -> int:
+    """Read the motion and the WAV once before rendering; returns the number of frames at 25 fps."""
+    check_motion_file(args.motion)
+    poses = load_motion_25fps(args.motion)[0]
+    if args.start * MOTION_FPS >= len(poses):
+        raise UsageError(f"--start {args.start}: the motion lasts {len(poses) / MOTION_FPS:.2f} s")
+    if args.wav is not None:
+        frame_audio(args.wav, 1)
+    return len(poses)
+
+
 def main(argv=None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     p = argparse.ArgumentParser(prog="python -m render.play", description=__doc__.splitlines()[0])
@@ -147,13 +199,17 @@ def main(argv=None) -> int:
     p.add_argument("--start", type=float, default=0.0, help="start time in seconds")
     p.add_argument("--seconds", type=float, help="render only this many seconds")
     args = p.parse_args(argv)
-    width, height = (args.width, args.height) if args.width else (args.size, args.size)
     import torch
 
     torch.set_num_threads(1)
+    from agent.io.audio_file import AudioFileError
+    from gesture.data.errors import DataError
     from render.body_model import BodyModelError
+    from render.mp4 import Mp4Error, Mp4WriteError
 
     try:
+        width, height = check_args(args)
+        check_inputs(args)
         if args.still:
             render_still(args.motion, args.still, args.start, camera=args.camera, width=width, height=height,
                          platform=args.platform, body_model=args.body_model)
@@ -163,9 +219,12 @@ def main(argv=None) -> int:
                               platform=args.platform, body_model=args.body_model,
                               max_frames=None if args.seconds is None else int(round(args.seconds * MOTION_FPS)),
                               start_frame=int(round(args.start * MOTION_FPS)))
-    except BodyModelError as err:
+    except Mp4WriteError as err:  # disk full, permission: not a usage mistake
         print(f"error: {err}", file=sys.stderr)
-        return 2
+        return 1
+    except (UsageError, DataError, AudioFileError, BodyModelError, Mp4Error) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_USAGE
     print(f"{args.mp4}: {stats['frames']} frames ({stats['video_s']:.2f} s) in {stats['wall_s']:.1f} s, "
           f"{stats['ms_per_frame']:.1f} ms/frame, {stats['x_real_time']:.2f}x real time")
     return 0

@@ -20,10 +20,10 @@ from typing import Sequence
 import numpy as np
 
 from agent.messages import DialogueStep, GestureStep, Message, RenderFrame
-from agent.stage import RunContext
+from agent.stage import RunContext, StageFailed
 from agent.timing import FRAME_SAMPLES, FRAMES_PER_STEP
 from render.config import RenderConfig
-from render.mp4 import Mp4Writer, mix_conversation
+from render.mp4 import Mp4Writer, Mp4WriteError, mix_conversation
 from render.view import AvatarView, load_body
 
 log = logging.getLogger(__name__)
@@ -106,6 +106,7 @@ class RenderComponent:
             writer = Mp4Writer(Path(cfg.mp4_path), self.width, self.height,
                                channels=2 if cfg.mp4_audio == "stereo" else 1, crf=cfg.mp4_crf, preset=cfg.mp4_preset)
             self.timeline = StepTimeline(writer, cfg.mp4_audio == "stereo", run.live)
+            self.timeline_failed = False
         self.rendered_frames = 0
         self.dropped_frames = 0
         self.flushed = False
@@ -115,14 +116,22 @@ class RenderComponent:
                 "mp4_frames": 0 if self.timeline is None else self.timeline.writer.frames_written,
                 "mp4_repeated_frames": 0 if self.timeline is None else self.timeline.repeated_frames}
 
+    def partial_files(self) -> list[Path]:
+        """The MP4 being written under its temporary name (the supervisor removes it if this process is killed)."""
+        return [] if self.timeline is None else [self.timeline.writer.tmp_path]
+
     def handle(self, msg: Message) -> Sequence[Message]:
-        if isinstance(msg, DialogueStep):
-            if self.timeline is not None:
-                self.timeline.add_audio(msg.step, msg.agent_pcm, msg.user_pcm)
+        try:
+            if isinstance(msg, DialogueStep):
+                if self.timeline is not None:
+                    self.timeline.add_audio(msg.step, msg.agent_pcm, msg.user_pcm)
+                return []
+            if isinstance(msg, GestureStep):
+                return self._render_step(msg)
             return []
-        if isinstance(msg, GestureStep):
-            return self._render_step(msg)
-        return []
+        except Mp4WriteError as err:  # disk full, file too large, permission: every later frame would fail too
+            self.timeline_failed = True
+            raise StageFailed(str(err)) from None
 
     def _too_late(self, msg: GestureStep) -> bool:
         return self.live and msg.t_origin_ns > 0 and (time.monotonic_ns() - msg.t_origin_ns) > self.cfg.max_lag_ms * 1e6
@@ -146,7 +155,11 @@ class RenderComponent:
 
     def flush(self) -> Sequence[Message]:
         if self.timeline is not None:
-            self.timeline.finish()
+            try:
+                self.timeline.finish()
+            except Mp4WriteError as err:
+                self.timeline_failed = True
+                raise StageFailed(str(err)) from None
         self.flushed = True
         return []
 
@@ -159,7 +172,7 @@ class RenderComponent:
         """
         try:
             if self.timeline is not None:
-                commit = self.flushed or self.live
+                commit = (self.flushed or self.live) and not self.timeline_failed
                 if commit:
                     self.timeline.finish()
                 path = self.timeline.writer.close(commit=commit)

@@ -159,3 +159,26 @@ def test_speaker_plays_steps_in_order_and_drops_the_oldest_when_far_behind(monke
     for _ in range(speaker_module.MAX_BUFFER_STEPS + 3):
         out.play(np.ones(STEP_SAMPLES, np.float32))
     assert out.dropped_samples > 0
+
+
+def test_a_truncated_wav_is_read_with_a_warning(tmp_path, caplog):
+    full = tmp_path / "full.wav"
+    sf.write(full, (0.3 * np.sin(np.arange(32000) / 16000 * 2 * np.pi * 220)).astype(np.float32), 16000,
+             subtype="PCM_16")  # 2 s
+    cut = tmp_path / "cut.wav"
+    cut.write_bytes(full.read_bytes()[:44 + 16000 * 2 // 2])  # the header and 0.5 s of samples
+    with caplog.at_level("WARNING", logger="agent.io.audio_file"):
+        pcm = load_audio(cut, SAMPLE_RATE_HZ)
+        load_audio(full, SAMPLE_RATE_HZ)
+    assert abs(len(pcm) - SAMPLE_RATE_HZ // 2) <= 2
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{cut}: truncated WAV: its header declares 2.00 s of audio, the file holds 0.50 s"]
+
+
+def test_samples_beyond_full_scale_are_read_with_a_warning(tmp_path, caplog):
+    loud = tmp_path / "loud.wav"
+    sf.write(loud, np.array([0.5, 1.5, -2.0, 0.0] * 4000, np.float32), 16000, subtype="FLOAT")
+    with caplog.at_level("WARNING", logger="agent.io.audio_file"):
+        load_audio(loud, SAMPLE_RATE_HZ)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{loud}: 8000 samples beyond ±1 full scale (peak 2.00); they clip when played or encoded"]

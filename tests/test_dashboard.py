@@ -208,14 +208,17 @@ def test_server_pushes_snapshot_events_and_frames_and_takes_commands():
                     await ws.send_str(json.dumps({"type": "control", "command": "stop"}))
                     await ws.send_str(json.dumps({"type": "control", "command": "rm -rf"}))
                     await ws.send_str("not json")
-                    await _until(lambda: commands)
+                    await ws.send_str("[" * 30_000 + "]" * 30_000)  # deeper than the JSON parser's stack
+                    await ws.send_str(json.dumps({"type": "control", "command": "start"}))
+                    await _until(lambda: len(commands) == 2)
+                    assert not ws.closed  # the page's connection survived the deep message
                 with pytest.raises(aiohttp.WSServerHandshakeError):  # another web site's page may not connect
                     await http.ws_connect(f"http://127.0.0.1:{port}/ws", headers={"Origin": "http://evil.test"})
         finally:
             await runner.cleanup()
 
     asyncio.run(scenario())
-    assert commands == ["stop"]
+    assert commands == ["stop", "start"]
 
 
 def test_a_port_in_use_gives_a_clear_error():
@@ -342,7 +345,7 @@ async def _until(condition, timeout_s: float = 5.0) -> None:
 
 
 # ---- a real run ------------------------------------------------------------------------------------------------
-def test_a_dashboard_that_cannot_start_ends_the_run_with_its_reason(tmp_path):
+def test_a_dashboard_port_in_use_is_refused_before_anything_starts(tmp_path):
     wav = tmp_path / "talk.wav"
     sf.write(wav, np.zeros(16000 * 20, np.float32), 16000)
     with socket.socket() as taken:
@@ -351,9 +354,10 @@ def test_a_dashboard_that_cannot_start_ends_the_run_with_its_reason(tmp_path):
         port = taken.getsockname()[1]
         proc = launch(["--replay", str(wav), "--set", f"dashboard.port={port}"], tmp_path / "run")
         code, output = finish(proc, timeout_s=90)
-    assert code == 1, output
-    assert "the dashboard died (exit code 3)" in output and f"cannot listen on 127.0.0.1:{port}" in output
-    assert leftovers(proc.pid) == []
+    assert code == 2, output
+    assert output.strip() == (f"error: dashboard.port: 127.0.0.1:{port} is in use, perhaps by another run's "
+                              f"dashboard; set another dashboard.port (0 takes any free port)")
+    assert leftovers(proc.pid) == [] and not (tmp_path / "run").exists()
 
 
 PAGE_STATE = """(() => {
@@ -477,6 +481,8 @@ def test_real_dialogue_and_renderer_show_in_the_page(tmp_path):
             await page.wait_for("window.dashboard && window.dashboard.phase === 'ready'", timeout_s=180)
             await page.evaluate("document.getElementById('start').click()")
             await page.wait_for("document.querySelectorAll('.msg.agent span').length >= 2", timeout_s=60)
+            await page.wait_for("window.dashboard.latencySamples > 5 && window.dashboard.frames > 10",
+                                timeout_s=60)  # wait for the events, do not count them in a window
             return await page.evaluate(VIDEO_SPREAD)
 
     seen, code, output = _drive_page(proc, report, watch, finish_timeout_s=60)

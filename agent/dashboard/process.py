@@ -186,9 +186,10 @@ def page_url(host: str, port: int, tls: bool = False) -> str:
 
 def dashboard_main(launch: DashboardLaunch) -> None:
     """The process entry point (multiprocessing spawn target)."""
-    from agent.process import die_with_parent, redirect_output, limit_threads
+    from agent.process import die_with_parent, limit_threads, redirect_output, remove_ipc_dir_if_orphaned
 
     die_with_parent()
+    supervisor_pid = os.getppid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group; the supervisor decides
     redirect_output(launch.log_path)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
@@ -199,4 +200,6 @@ def dashboard_main(launch: DashboardLaunch) -> None:
     except OSError as e:
         log.error("%s", e)
         sys.exit(EXIT_STARTUP_FAILED)
+    finally:
+        remove_ipc_dir_if_orphaned(launch.ipc_dir, supervisor_pid)
     log.info("stopped")

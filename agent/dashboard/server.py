@@ -138,8 +138,8 @@ class Hub:
     def _on_page_message(self, page: Page, text: str) -> None:
         try:
             msg = json.loads(text)
-        except ValueError:
-            log.warning("ignored a page message that is not JSON: %.80r", text)
+        except (ValueError, RecursionError):  # RecursionError: nested deeper than the parser's stack
+            log.warning("ignored a page message that is not JSON (or nested too deep): %.80r", text)
             return
         if not isinstance(msg, dict):
             return

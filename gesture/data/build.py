@@ -19,6 +19,7 @@ from gesture.data.beat2 import find_takes  # noqa: E402
 from gesture.data.cache import build_cache  # noqa: E402
 from gesture.data.config import DataConfig, load_data_config  # noqa: E402
 from gesture.data.errors import DataError  # noqa: E402
+from agent.config import ConfigError  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -28,7 +29,11 @@ def main(argv=None) -> int:
     parser.add_argument("--config", help="YAML with data options (configs/data/*.yaml); --root/--out override it")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    cfg = load_data_config(args.config) if args.config else DataConfig()
+    try:
+        cfg = load_data_config(args.config) if args.config else DataConfig()
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     root, out = Path(args.root or cfg.root), Path(args.out or cfg.cache_dir)
     try:
         takes = [t for t in find_takes(root, cfg.default_split) if t.speaker not in cfg.exclude_speakers]

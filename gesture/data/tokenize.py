@@ -220,6 +220,10 @@ def main(argv=None) -> int:
     parser.add_argument("--speech-tokenizer", type=Path, default=DEFAULT_CHECKPOINT)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    for flag, path in (("--root", args.root), ("--codecs", args.codecs)):
+        if not path.is_dir():
+            print(f"error: {flag} {path}: not a directory", file=sys.stderr)
+            return 2
     try:
         summary = tokenize_directory(args.root, args.codecs, args.out, args.splits, args.speaker,
                                      args.speech_tokenizer, progress=lambda xs: tqdm(xs, desc="takes", unit="take"))
