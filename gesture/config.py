@@ -111,6 +111,9 @@ class GestureConfig:
     # weights of the step path (LM, codec decoders): "float32" is exact to training; "bfloat16" (codecs float16)
     # and "int8" (per-row int8 weights everywhere, the fastest; see bench.gesture_step) trade a little precision
     dtype: Literal["float32", "bfloat16", "int8"] = "bfloat16"
+    # when this CPU cannot run `dtype`'s fast kernel (gesture.nn.weights): true logs one line and runs the portable
+    # kernel (slower); false stops at start-up with that line
+    dtype_fallback: bool = True
     warmup_steps: int = 4  # silent steps run at start-up, then the state is reset
     initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0)
     dialogue_spec: Optional[ConditionSpec] = None  # checked against the LM checkpoint's spec at start-up

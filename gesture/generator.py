@@ -46,14 +46,14 @@ class GeneratedStep:
 
 
 class GestureGenerator:
-    """See the module docstring. `dtype` is the weight type of the step path (`gesture.lm.packed.STEP_DTYPES`):
-    bfloat16 prepacks the LM's matrices and decodes with float16 codec copies; int8 stores the LM's matrices as
+    """See the module docstring. `dtype` is the weight form of the step path (a key of CODEC_FORMS, see
+    `gesture.nn.weights`): bfloat16 stores the LM's matrices in bfloat16 and decodes with float16 codec copies; int8 stores the LM's matrices as
     per-row int8 (logits within ~1% of float32, twice bfloat16's error) and decodes with int8 codec copies
     (`gesture.codec.inference`). `engine="naive"` swaps in the cache-free baseline (benchmark only)."""
 
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
-                 seed: int = 0, dtype: torch.dtype = torch.float32, idle_gate: Optional[IdleGate] = None,
+                 seed: int = 0, dtype: str = "float32", idle_gate: Optional[IdleGate] = None,
                  initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
                  engine: Literal["cached", "naive"] = "cached") -> None:
         self.sizes = lm.sizes
@@ -63,6 +63,8 @@ class GestureGenerator:
         self.temperature, self.top_p_temporal, self.top_p_depth = temperature, top_p_temporal, top_p_depth
         self.cfg_scale = cfg_scale
         guided = cfg_scale != 1.0
+        if dtype not in CODEC_FORMS:
+            raise ValueError(f"dtype: must be one of {', '.join(CODEC_FORMS)}, got {dtype!r}")
         lm = lm.eval()
         self.engine = LMStepper(lm, guided, dtype) if engine == "cached" else NaiveStepper(lm, guided)
         self.engine.set_speaker(speaker)
@@ -157,10 +159,10 @@ class GestureGenerator:
         return poses, trans, expressions
 
 
-CODEC_FORMS = {torch.float32: "float32", torch.bfloat16: "float16", torch.int8: "int8"}  # LM dtype -> codec weights
+CODEC_FORMS = {"float32": "float32", "bfloat16": "float16", "int8": "int8"}  # LM weight form -> codec weights
 
 
-def _inference_codec(codec: GestureCodec, dtype: torch.dtype) -> GestureCodec:
+def _inference_codec(codec: GestureCodec, dtype: str) -> GestureCodec:
     """The codec as decoded here: a lean streaming copy (gesture.codec.inference) whose decoder weights follow the
     LM's dtype (bfloat16 LM weights pair with float16 codec weights, the faster form for the codecs' products)."""
     return inference_codec(codec, CODEC_FORMS[dtype])

@@ -29,11 +29,11 @@ from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
+from gesture.nn.weights import UnsupportedFormError, require_fast_form
 
 log = logging.getLogger(__name__)
 STATS_FILE = "gesture.json"
 MOTION_FILE = "motion.npz"
-DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "int8": torch.int8}
 
 
 class GestureComponent:
@@ -101,6 +101,10 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
         raise ConfigError("gesture.lm_checkpoint: required (a directory written by python -m gesture.train_lm)")
     if cfg.codec_checkpoints is None:
         raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
+    try:
+        require_fast_form(cfg.dtype, "gesture.dtype", fallback=cfg.dtype_fallback)
+    except UnsupportedFormError as error:
+        raise ConfigError(str(error)) from None
     expected = cfg.dialogue_spec
     lm = load_lm(cfg.lm_checkpoint, expected)
     codecs = load_codecs(cfg.codec_checkpoints)
@@ -112,7 +116,7 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
                         cfg.idle.window_samples, cfg.idle.l2_threshold, cfg.idle.rewind_below_tokens)
     return GestureGenerator(lm, codecs, temperature=cfg.temperature, top_p_temporal=cfg.top_p_temporal,
                             top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
-                            dtype=DTYPES[cfg.dtype], idle_gate=idle, initial_translation=cfg.initial_translation)
+                            dtype=cfg.dtype, idle_gate=idle, initial_translation=cfg.initial_translation)
 
 
 def warm_up(generator: GestureGenerator, steps: int) -> None:

@@ -8,9 +8,9 @@ import torch
 from gesture.codec.build import build_codec
 from gesture.codec.config import load_codec_config
 from gesture.codec.inference import INFERENCE_DTYPES, inference_codec
-from gesture.codec.step_weights import quantize_int8_rows, step_weight
 from gesture.codec.streaming import StreamingDecoder, StreamingEncoder
 from gesture.regions import REGION_DIMS
+from tests.kernels import KERNELS, using
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,14 +43,16 @@ def _stream(codec, codes: torch.Tensor) -> torch.Tensor:
         return torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(codes.shape[-1])], dim=1)
 
 
+@pytest.mark.parametrize("kernels", KERNELS)
 @pytest.mark.parametrize("dtype", INFERENCE_DTYPES)
 @pytest.mark.parametrize("region", ["upper", "face"])
-def test_prepared_streaming_equals_float32_offline_decode(region, dtype):
+def test_prepared_streaming_equals_float32_offline_decode(region, dtype, kernels):
     codec = _codec(region)
     codes = torch.randint(0, SMALL.codebook_size, (2, codec.n_q, STEPS))
     with torch.no_grad():
         offline = codec.decode(codes)
-    prepared = inference_codec(codec, dtype)
+    with using(kernels, dtype):
+        prepared = inference_codec(codec, dtype)
     streamed = _stream(prepared, codes)
     assert streamed.dtype == torch.float32 and streamed.shape == offline.shape
     tolerance = RELATIVE_TOLERANCE[dtype] * float(offline.abs().max())
@@ -98,16 +100,3 @@ def test_bad_dtype_names_the_option():
     codec = _codec("face")
     with pytest.raises(ValueError, match="dtype: must be one of float32, float16, bfloat16, int8, got 'fp8'"):
         inference_codec(codec, "fp8")
-
-
-def test_int8_rows_and_the_bfloat16_fallback_for_short_rows():
-    matrix = torch.randn(40, 48)
-    quantized, scale = quantize_int8_rows(matrix)
-    assert quantized.dtype == torch.int8
-    assert bool(((quantized.float() * scale[:, None] - matrix).abs() <= scale[:, None] / 2 + 1e-7).all())
-    x = torch.randn(3, 48)
-    torch.testing.assert_close(step_weight(matrix, "int8").apply(x).float(), x @ matrix.t(), atol=0.1, rtol=0.02)
-    odd = torch.randn(5, 24)  # 24 inputs: not a multiple of 16, stored as bfloat16
-    assert step_weight(odd, "int8").out_dtype == torch.bfloat16
-    torch.testing.assert_close(step_weight(odd, "int8").apply(x[:, :24]).float(), x[:, :24] @ odd.t(),
-                               atol=0.1, rtol=0.02)

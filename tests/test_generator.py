@@ -8,6 +8,7 @@ from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.lm.idle import IdleGate
 from gesture.regions import LOWER_VELOCITY_SLICE
+from tests.kernels import KERNELS, using
 
 torch.set_num_threads(1)
 
@@ -176,13 +177,16 @@ def test_soak_memory_stays_flat():
     assert max(samples[len(samples) // 10:]) - warm < 20, samples
 
 
-def test_bfloat16_step_path_decodes_close_to_float32():
+@pytest.mark.parametrize("kernels", KERNELS)
+@pytest.mark.parametrize("dtype", ["bfloat16", "int8"])
+def test_reduced_precision_step_path_decodes_close_to_float32(dtype, kernels):
     lm, codecs = tiny_lm(), tiny_codecs()
     first = GestureGenerator(lm, codecs)
     tokens = torch.from_numpy(first.step(1, np.arange(8)).tokens.astype(np.int64))
     first.close()  # the codecs stream for one generator at a time
-    fast = GestureGenerator(lm, codecs, dtype=torch.bfloat16)
-    exact = GestureGenerator(lm, codecs, dtype=torch.float32)
+    with using(kernels, dtype):
+        fast = GestureGenerator(lm, codecs, dtype=dtype)
+    exact = GestureGenerator(lm, codecs, dtype="float32")
     assert type(codecs["upper"].transformer_decoder.transformer.layers[0].linear1) is torch.nn.Linear  # not mutated
     for _ in range(3):
         a, b = fast._decode(tokens), exact._decode(tokens)

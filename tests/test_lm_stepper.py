@@ -6,6 +6,7 @@ import torch
 from gesture.lm.fixtures import tiny_lm
 from gesture.lm.naive import NaiveStepper
 from gesture.lm.stepper import LMStepper
+from tests.kernels import KERNELS, using
 
 torch.set_num_threads(1)
 STEPS = 200
@@ -85,27 +86,32 @@ def test_va_head_of_the_step_path_equals_full_forward():
             assert abs(stepper.va_logit(face_logits) - float(full[t])) < 1e-4
 
 
-@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.int8])
-def test_reduced_precision_weights_stay_close_to_float32(dtype):
+@pytest.mark.parametrize("kernels", KERNELS)
+@pytest.mark.parametrize("dtype", ["bfloat16", "int8"])
+def test_reduced_precision_weights_stay_close_to_float32(dtype, kernels):
     """Measured on the shipped checkpoint: ~0.5% (bfloat16) and ~1% (per-row int8) of max |logit|."""
     model = tiny_lm()
     tokens, text, audio = _sequence(model, 30)
     ref = _stream_logits(LMStepper(model, guided=True), tokens, text, audio)
-    low = _stream_logits(LMStepper(model, guided=True, dtype=dtype), tokens, text, audio)
+    with using(kernels, dtype):
+        stepper = LMStepper(model, guided=True, dtype=dtype)
+    low = _stream_logits(stepper, tokens, text, audio)
     assert (low - ref).abs().max() < 0.05 * ref.abs().max()
 
 
 # bfloat16 products round each logit to 2^-8 relative; guidance c = 3 adds the rows' roundings (c + |c - 1| = 5 ulps)
-@pytest.mark.parametrize("dtype, tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 0.05), (torch.int8, 0.05)])
-def test_guided_logits_equal_guidance_of_the_rows(dtype, tolerance):
+@pytest.mark.parametrize("kernels", KERNELS)
+@pytest.mark.parametrize("dtype, tolerance", [("float32", 1e-5), ("bfloat16", 0.05), ("int8", 0.05)])
+def test_guided_logits_equal_guidance_of_the_rows(dtype, tolerance, kernels):
     """The guided row is the classifier of the lerped hidden state: null + c (cond − null) of the two rows (within
     `tolerance` x max |logit| for the rounded weight forms); guidance 1 is row 0."""
     model = tiny_lm()
     tokens, text, audio = _sequence(model, 8)
-    rows_engine, guided_engine = LMStepper(model, True, dtype), LMStepper(model, True, dtype)
+    with using(kernels, dtype):
+        rows_engine, guided_engine = LMStepper(model, True, dtype), LMStepper(model, True, dtype)
 
     def check(rows, guided):
-        scale = rows.abs().max() if dtype != torch.float32 else 1.0
+        scale = rows.abs().max() if dtype != "float32" else 1.0
         torch.testing.assert_close(guided, rows[1] + 3.0 * (rows[0] - rows[1]), atol=tolerance * scale, rtol=0)
 
     with torch.inference_mode():
@@ -122,4 +128,4 @@ def test_guided_logits_equal_guidance_of_the_rows(dtype, tolerance):
 
 def test_unknown_weight_dtype_names_the_option():
     with pytest.raises(ValueError, match="dtype"):
-        LMStepper(tiny_lm(), guided=True, dtype=torch.float16)
+        LMStepper(tiny_lm(), guided=True, dtype="fp16")

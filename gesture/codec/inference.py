@@ -6,8 +6,9 @@ half computes the same function with fewer ops per step and cheaper weights:
 - the quantizer decodes by one gather of precomputed projected code vectors (`project_codebooks`);
 - the decoder transformer is a `StepTransformer` (LayerScales folded, no masks while streaming);
 - the SEANet decoder convs have weight norm folded once (`pack_convs`);
-- every decoder matrix is stored in `dtype`: "float32", "float16", "bfloat16" (oneDNN-prepacked) or "int8"
-  (per-output-row symmetric int8 weights, bfloat16 activations). See gesture/codec/step_weights.py.
+- every decoder matrix is stored in `dtype`: "float32", "float16", "bfloat16" or "int8" (per-output-row
+  symmetric int8 weights, bfloat16 activations), each with the fastest kernel this CPU runs: see
+  `gesture.nn.weights`.
 
 Activations, caches and the output stay float32; `StreamingDecoder` runs on the copy unchanged, and so do
 `codec.decode` offline and the (untouched, float32) encoder half. The copy is for inference only: its decoder
@@ -21,7 +22,7 @@ import copy
 from gesture.codec.model import GestureCodec
 from gesture.codec.step_seanet import pack_convs
 from gesture.codec.step_transformer import StepTransformer
-from gesture.codec.step_weights import WEIGHT_FORMS, check_form
+from gesture.nn.weights import WEIGHT_FORMS, check_form
 from gesture.nn import StreamingModule
 
 INFERENCE_DTYPES = WEIGHT_FORMS

@@ -1,4 +1,4 @@
-"""Inference-only convs for a codec's SEANet decoder: weight norm folded once, weights in a `step_weights` form.
+"""Inference-only convs for a codec's SEANet decoder: weight norm folded once, weights in a `gesture.nn.weights` form.
 
 `pack_convs(module, form)` replaces the inner conv of every StreamingConv1d / StreamingConvTranspose1d below
 `module` (the streaming wrappers and their states stay), so a step is one product on the unfolded input
@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gesture.codec.step_weights import step_weight
+from gesture.nn.weights import step_weight
 from gesture.nn import StreamingConv1d, StreamingConvTranspose1d
 
 

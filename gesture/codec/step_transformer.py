@@ -1,7 +1,7 @@
 """An inference-only copy of a codec's LatentTransformer with few ops per streaming step.
 
 Same function as `gesture.codec.model.LatentTransformer` in eval mode, (B, D, S) -> (B, D, S), offline or
-streaming one step per call, with: weights in a `step_weights` form, the LayerScales folded into the output
+streaming one step per call, with: weights in a `gesture.nn.weights` form, the LayerScales folded into the output
 projections, RoPE as one complex product over q, k and v together (v's rotation is 1), and one key/value
 ring per layer read without a mask while streaming (the ring holds exactly the last `context` steps, so every
 filled slot is visible, and softmax attention does not depend on slot order). Activations, caches and the
@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from gesture.codec.model import LatentTransformer
-from gesture.codec.step_weights import step_weight
+from gesture.nn.weights import step_weight
 from gesture.nn import StreamingModule, StreamingState, StreamingTransformerLayer, attention_mask
 
 

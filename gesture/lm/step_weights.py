@@ -8,7 +8,7 @@ Exact rewrites (proved against `GestureLM.forward` in tests/test_lm_stepper.py):
   a per-layer (temporal) or per-layer-and-position (depth) constant; masked lower-body depth rows are constants too;
 - the temporal cross-attention out_projs and memory_projs fold into one (d, 2d) matrix;
 - the depth positions are fixed, so their RoPE rotation folds into the query and key rows of each position.
-`cast` stores a matrix in the step path's weight form (`gesture.lm.packed.pack_weight`); norms, biases and
+`cast` stores a matrix in the step path's weight form (`gesture.nn.weights.step_weight`); norms, biases and
 constants stay float32.
 """
 
@@ -23,8 +23,9 @@ import torch.nn.functional as F
 from gesture.lm.layers import DepthLayer, TemporalLayer
 from gesture.lm.model import GestureLM
 from gesture.nn.rope import apply_rope
+from gesture.nn.weights import StepWeight
 
-Cast = Callable[[torch.Tensor], object]
+Cast = Callable[[torch.Tensor], StepWeight]
 
 
 def norm_params(norm: torch.nn.LayerNorm) -> tuple[torch.Tensor, torch.Tensor]:
@@ -43,15 +44,15 @@ class TemporalWeights:
     norm1: tuple
     norm2: tuple
     norm3: tuple
-    qkv: object  # (3d, d)
-    out: object  # (d, d)
-    cross_q: object  # (2d, d): audio query rows, then text query rows
-    mix: object  # (d, 2d) = memory_projs ∘ [out_audio, out_text]
+    qkv: StepWeight  # (3d, d)
+    out: StepWeight  # (d, d)
+    cross_q: StepWeight  # (2d, d): audio query rows, then text query rows
+    mix: StepWeight  # (d, 2d) = memory_projs ∘ [out_audio, out_text]
     mix_bias: torch.Tensor
-    ca_in: object
-    ca_out: object
-    ffn_in: object
-    ffn_out: object
+    ca_in: StepWeight
+    ca_out: StepWeight
+    ffn_in: StepWeight
+    ffn_out: StepWeight
     null_ca: torch.Tensor  # (d,) cross-attention block output of the null half
 
 
@@ -88,7 +89,7 @@ def temporal_weights(layer: TemporalLayer, model: GestureLM, cast: Cast) -> Temp
         null_ca=null_ca.detach())
 
 
-def memory_kv(model: GestureLM, cast: Cast) -> object:
+def memory_kv(model: GestureLM, cast: Cast) -> StepWeight:
     """(2 * L * 2d, d): for the audio memory, then the text memory, every temporal layer's key then value rows."""
     layers = model.temporal_transformer.layers
     blocks = [(layer.cross_attns[i].key_projs[0].weight, layer.cross_attns[i].val_projs[0].weight)

@@ -8,8 +8,8 @@ condition (CFG's null half). Both calls return the logits of every row, (B, card
 guided logits null + c·(cond − null) as one (card+1,) row: the classifiers are linear, so that is the classifier
 of the guided hidden state, one row instead of two and no guidance ops on the logits.
 
-Weights of the matrix products are stored in `dtype` (float32, oneDNN-prepacked bfloat16, or per-row int8 with
-bfloat16 activations; see `gesture.lm.packed`). The residual streams, norms, softmax and the temporal caches stay
+Weights of the matrix products are stored in `dtype` (a `gesture.nn.weights` form: float32, bfloat16, or per-row
+int8 with bfloat16 activations, each with the fastest kernel this CPU runs). The residual streams, norms, softmax and the temporal caches stay
 float32; the depth keys/values are stored in the products' output dtype (they are its outputs, unrounded).
 Every buffer is allocated once: the rings hold exactly the attention windows (self 25, cross 50 steps), so a
 query sees every filled slot and a mask is needed only until a ring is full. Nothing grows with the session.
@@ -25,10 +25,10 @@ import torch.nn.functional as F
 from gesture.lm.embeddings import table_index
 from gesture.lm.layers import LAYER_NORM_EPS
 from gesture.lm.model import GestureLM
-from gesture.lm.packed import activation_dtype, gated_ffn, pack_weight, product
 from gesture.lm.step_weights import depth_fold, depth_weights, memory_kv, norm_params, temporal_weights
 from gesture.nn.rope import rope_tables, rotate_with_tables
 from gesture.nn.streaming import StreamingState
+from gesture.nn.weights import StepWeight, check_form, gated_ffn, step_weight
 
 F32 = torch.float32
 attend = F.scaled_dot_product_attention
@@ -63,10 +63,10 @@ class LMStepState(StreamingState):
 class LMStepper:
     """Cached step path of a `GestureLM`; see the module docstring."""
 
-    def __init__(self, model: GestureLM, guided: bool, dtype: torch.dtype = F32) -> None:
+    def __init__(self, model: GestureLM, guided: bool, dtype: str = "float32") -> None:
         self.sizes, self.spec = model.sizes, model.spec
         self.batch = 2 if guided else 1
-        self.dtype = dtype
+        self.dtype = check_form(dtype)
         self.has_va = model.sizes.va_head
         self.needs_face_logits = self.has_va and model.sizes.va_use_face_logits
         self._va_model = model if self.has_va else None
@@ -79,8 +79,8 @@ class LMStepper:
         self.set_speaker(0)
 
     # ----- preparation ----------------------------------------------------------------------------------------
-    def _cast(self, w: torch.Tensor):
-        return pack_weight(w, self.dtype, self.batch)
+    def _cast(self, w: torch.Tensor) -> StepWeight:
+        return step_weight(w, self.dtype, self.batch)
 
     def _prepare_tables(self, model: GestureLM) -> None:
         card = self.sizes.card
@@ -125,7 +125,7 @@ class LMStepper:
     def _new_state(self) -> LMStepState:
         s, b, d = self.sizes, self.batch, self.sizes.d_model
         heads_t, heads_d = s.temporal_heads, s.depth_heads
-        depth_dtype = activation_dtype(self.depth[0].qkv[0]) if self.depth else F32
+        depth_dtype = self.depth[0].qkv[0].out_dtype if self.depth else F32
         temporal_ca = torch.zeros(s.temporal_layers, b, d)
         depth_ca = torch.zeros(s.depth_layers, s.n_depth, b, d)
         for i, w in enumerate(self.temporal):
@@ -188,7 +188,7 @@ class LMStepper:
         h = self._temporal(x.expand(self.batch, d), memories[:, :d])  # (B, d) before out_norm
         self.temporal_out = h
         normed = _norm(h, self.out_norm)
-        st.depth_z.copy_(product(normed, self.depth_in).view(self.batch, -1, d) + self.spk_depth)  # (B, S, d)
+        st.depth_z.copy_(self.depth_in.apply(normed).view(self.batch, -1, d) + self.spk_depth)  # (B, S, d)
         self._depth_cross(memories[:, d:])
         st.step += 1
         return self._logits(normed, self.classifier0, guidance)
@@ -205,17 +205,17 @@ class LMStepper:
         cross_mask = None if bool(st.cross_filled.all()) else st.cross_filled[None]
         self_keys, self_values = st.self_keys[:, :, :, self_slot], st.self_values[:, :, :, self_slot]  # (L, B, H, Dh)
         for i, w in enumerate(self.temporal):
-            qkv = product(_norm(x, w.norm1), w.qkv).float().view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh)
+            qkv = w.qkv.apply(_norm(x, w.norm1)).float().view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh)
             qk = rotate_with_tables(qkv[:, :2], *rope)  # (B, 2, H, 1, Dh)
             self_keys[i].copy_(qk[:, 1, :, 0])
             self_values[i].copy_(qkv[:, 2, :, 0])
             attended = attend(qk[:, 0], st.self_keys[i], st.self_values[i], attn_mask=self_mask)  # (B, H, 1, Dh)
-            x = x + product(attended.reshape(self.batch, d), w.out)
+            x = x + w.out.apply(attended.reshape(self.batch, d))
             audio_query = _norm(x[:1], w.norm3[0])
-            queries = product(torch.cat([audio_query, _norm(audio_query, w.norm3[1])]), w.cross_q).float()  # (2, 2d)
+            queries = w.cross_q.apply(torch.cat([audio_query, _norm(audio_query, w.norm3[1])])).float()  # (2, 2d)
             q = rotate_with_tables(torch.stack([queries[0, :d], queries[1, d:]]).view(2, heads, 1, -1), *rope)
             crossed = attend(q, st.cross_keys[i], st.cross_values[i], attn_mask=cross_mask)  # (2, H, 1, Dh)
-            mixed = F.silu(product(crossed.reshape(1, 2 * d), w.mix) + w.mix_bias)  # (1, d) float32
+            mixed = F.silu(w.mix.apply(crossed.reshape(1, 2 * d)) + w.mix_bias)  # (1, d) float32
             st.temporal_ca[i, :1].copy_(gated_ffn(mixed, w.ca_in, w.ca_out))
             x = x + st.temporal_ca[i]
             x = x + gated_ffn(_norm(x, w.norm2), w.ffn_in, w.ffn_out)
@@ -225,7 +225,7 @@ class LMStepper:
         """Keys and values of the audio and text memories for every layer, into ring slot `slot`."""
         s, st = self.sizes, self.state
         rows = s.temporal_layers * 2 * s.d_model
-        kv = product(memories, self.memory_kv).float()  # (2, 2 * rows): each memory times both weight halves
+        kv = self.memory_kv.apply(memories).float()  # (2, 2 * rows): each memory times both weight halves
         kv = torch.stack([kv[0, :rows], kv[1, rows:]]).view(2, s.temporal_layers, 2, s.temporal_heads, -1)
         st.cross_keys[:, :, :, slot] = rotate_with_tables(kv[:, :, 0], *rope).transpose(0, 1)  # (L, 2, H, Dh)
         st.cross_values[:, :, :, slot] = kv[:, :, 1].transpose(0, 1)
@@ -234,7 +234,7 @@ class LMStepper:
     def _depth_cross(self, memories: torch.Tensor) -> None:
         """Row-0 cross-attention block outputs of every depth layer and open position (the rest are constants)."""
         d, n_open = self.sizes.d_model, len(self.open_positions)
-        pre = product(memories.reshape(1, 2 * d), self.depth_fold).view(len(self.depth), n_open, d)
+        pre = self.depth_fold.apply(memories.reshape(1, 2 * d)).view(len(self.depth), n_open, d)
         mixed = F.silu(pre + self.depth_mix_bias).view(-1, 1, d).unbind(0)  # (L * n_open) x (1, d)
         for j, (x, out) in enumerate(zip(mixed, self._open_ca_rows)):
             w, s = self.depth[j // n_open], self.open_positions[j % n_open]
@@ -247,21 +247,21 @@ class LMStepper:
         row = self.depth_gesture_table[k * self.row_stride + (token if token >= 0 else self.row_stride - 1)]
         z = self._depth_z_rows[k] + row  # (B, d)
         for i, w in enumerate(self.depth):
-            qkv = product(_norm(z, w.norm1), w.qkv[k])  # (B, 3d), RoPE'd by the weights
+            qkv = w.qkv[k].apply(_norm(z, w.norm1))  # (B, 3d), RoPE'd by the weights
             self._kv_slots[i][k].copy_(qkv[:, d:])
             attended = attend(qkv[:, :d].view(b, heads, 1, -1), self._keys[i][k], self._values[i][k])  # (B, H, 1, Dh)
-            z = z + product(attended.reshape(b, d), w.out[k])
+            z = z + w.out[k].apply(attended.reshape(b, d))
             z = z + self._ca_rows[i][k]
             z = z + gated_ffn(_norm(z, w.norm2), w.ffn_in[k], w.ffn_out[k])
         return self._logits(z, self.classifiers[k], guidance)
 
-    def _logits(self, h: torch.Tensor, classifier, guidance: float | None) -> torch.Tensor:
+    def _logits(self, h: torch.Tensor, classifier: StepWeight, guidance: float | None) -> torch.Tensor:
         """Classifier logits (B, V) of the rows h (B, d), or (V,) of the guided row lerp(null, cond, guidance)."""
         if guidance is None:
-            return product(h, classifier).float()
+            return classifier.apply(h).float()
         if self.batch == 1 or guidance == 1.0:
-            return product(h[:1], classifier).float()[0]
-        return product(torch.lerp(h[1:], h[:1], guidance), classifier).float()[0]
+            return classifier.apply(h[:1]).float()[0]
+        return classifier.apply(torch.lerp(h[1:], h[:1], guidance)).float()[0]
 
     def va_logit(self, face_logits: torch.Tensor | None = None) -> float:
         """Voice-activity logit of row 0 for the current step; face_logits (n_face, card+1) if the head uses them."""
