@@ -10,7 +10,9 @@ them), opens a StreamingDecoder on each and times `step` of all three per 80 ms 
 LayerScales, projected codebooks, a lean step and float32/float16/bfloat16/int8 weights). All variants
 and a fixed baseline workload (256x2048x256 matmuls) step in turn, interleaved, so they are compared
 under the same machine load, and a reading can be judged by the baseline. The step reads every decoder
-weight once, so it is bound by memory traffic and by per-op overhead on CPU.
+weight once, so it is bound by memory traffic and by per-op overhead on CPU: each prepared variant also reports
+its stored weight bytes, the kernels this CPU gave them, and its median against the time to read those bytes once
+at the single-core bandwidth measured in the same run (`bench.machine`); the report names the CPU and its flags.
 
 `--quality` adds, for each prepared dtype, the largest feature error against the float32 offline decode
 on random codes at the reference size, and the MPJPE (mm) of the real BEAT2 clip encoded by the shipped
@@ -30,10 +32,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from bench.machine import (BaselineMatmul, machine_report, memory_read_bandwidth_gbps,  # noqa: E402
+                           percentiles_ms, read_floor_ms)
 from gesture.codec.build import build_codec, count_parameters  # noqa: E402
 from gesture.codec.config import REGIONS, load_codec_config  # noqa: E402
 from gesture.codec.inference import INFERENCE_DTYPES, inference_codec  # noqa: E402
 from gesture.codec.streaming import StreamingDecoder  # noqa: E402
+from gesture.nn.weights import kernels_used, stored_weights  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG_DIR = REPO / "configs" / "codec"
@@ -42,19 +47,6 @@ BEAT2_CLIP = REPO.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
 GOAL_MEDIAN_MS = 6.0
 CAST = "cast"
 PREPARED = "inference_codec"
-
-
-def _percentiles(samples_s: list[float]) -> dict[str, float]:
-    ms = np.asarray(samples_s) * 1000
-    return {"median_ms": float(np.median(ms)), "p95_ms": float(np.percentile(ms, 95)),
-            "p99_ms": float(np.percentile(ms, 99)), "mean_ms": float(ms.mean())}
-
-
-def _baseline_workload(a: torch.Tensor, b: torch.Tensor) -> float:
-    start = time.perf_counter()
-    for _ in range(4):
-        a @ b
-    return time.perf_counter() - start
 
 
 class _Variant:
@@ -81,26 +73,35 @@ class _Variant:
             decoder.step(self.codes[region][i:i + 1])
         return time.perf_counter() - start
 
-    def result(self) -> dict:
-        return {"size": self.size, "path": self.path, "dtype": self.dtype, "parameters": self.parameters,
-                "decode_step_all_three": _percentiles(self.samples_s)}
+    def result(self, bandwidth_gbps: float, baseline_ms: float) -> dict:
+        step = percentiles_ms(np.asarray(self.samples_s) * 1e3)
+        result = {"size": self.size, "path": self.path, "dtype": self.dtype, "parameters": self.parameters,
+                  "decode_step_all_three": step, "vs_baseline_matmul": round(step["median_ms"] / baseline_ms, 4)}
+        stored = stored_weights(list(self.codecs.values()))
+        if stored:  # the prepared path; a cast codec reads its parameters through torch modules
+            nbytes = sum(w.nbytes for w in stored)
+            floor_ms = read_floor_ms(nbytes, bandwidth_gbps)
+            result.update(weight_MB=round(nbytes / 1e6, 3), kernels=kernels_used(stored),
+                          read_floor_ms=round(floor_ms, 4), vs_read_floor=round(step["median_ms"] / floor_ms, 2))
+        return result
 
 
 def bench(sizes: list[str], dtypes: list[str], prepared: list[str], steps: int, warmup: int) -> dict:
     """Every variant steps in turn with the baseline, so all see the same machine load."""
     paths = [(CAST, dtype) for dtype in dtypes] + [(PREPARED, dtype) for dtype in prepared]
     variants = [_Variant(size, path, dtype, steps + warmup) for size in sizes for path, dtype in paths]
-    a, b = torch.randn(256, 2048), torch.randn(2048, 256)
-    baseline_s = []
+    baseline = BaselineMatmul()
     for i in range(steps + warmup):
         for variant in variants:
             elapsed = variant.step(i)
             if i >= warmup:
                 variant.samples_s.append(elapsed)
-        base = _baseline_workload(a, b)
         if i >= warmup:
-            baseline_s.append(base)
-    return {"baseline_matmul": _percentiles(baseline_s), "runs": [v.result() for v in variants]}
+            baseline.sample()
+    bandwidth = memory_read_bandwidth_gbps()
+    return {"memory_read_GBps": round(bandwidth, 2),
+            "baseline_matmul": percentiles_ms(np.asarray(baseline.samples_s) * 1e3),
+            "runs": [v.result(bandwidth, baseline.median_ms()) for v in variants]}
 
 
 def quality(dtypes: list[str]) -> dict:
@@ -126,7 +127,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    results = {"threads": torch.get_num_threads(), "torch": torch.__version__, "steps": args.steps,
+    results = {"threads": torch.get_num_threads(), "machine": machine_report(), "steps": args.steps,
                "goal_median_ms": GOAL_MEDIAN_MS, **bench(args.sizes, args.dtypes, args.prepared, args.steps,
                                                           args.warmup)}
     if args.quality:
@@ -134,11 +135,15 @@ def main(argv: list[str] | None = None) -> None:
     if args.json:
         print(json.dumps(results, indent=2))
         return
+    cpu = results["machine"]["cpu"]
+    print(f"{cpu['model']} ({', '.join(cpu['flags'])}); memory read {results['memory_read_GBps']} GB/s")
     print(f"baseline (4 x 256x2048x256 matmul) median {results['baseline_matmul']['median_ms']:.2f} ms")
     for r in results["runs"]:
         d = r["decode_step_all_three"]
+        floor = f", {r['vs_read_floor']}x the weight read floor {r['kernels']}" if "vs_read_floor" in r else ""
         print(f"{r['size']:>9} {r['path']:>15} {r['dtype']:>8}: decode step (3 codecs) median "
-              f"{d['median_ms']:.2f} ms, p95 {d['p95_ms']:.2f}, p99 {d['p99_ms']:.2f}")
+              f"{d['median_ms']:.2f} ms, p95 {d['p95_ms']:.2f}, p99 {d['p99_ms']:.2f}; "
+              f"{r['vs_baseline_matmul']}x the baseline{floor}")
     if args.quality:
         print(json.dumps(results["quality"], indent=2))
 

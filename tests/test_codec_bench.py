@@ -12,6 +12,7 @@ def test_bench_reports_every_variant(capsys):
           "--prepared", "float32", "int8"])
     report = json.loads(capsys.readouterr().out)
     assert report["threads"] == 1 and report["goal_median_ms"] == 6.0
+    assert report["machine"]["cpu"]["model"] and report["memory_read_GBps"] > 0
     assert [(r["size"], r["path"], r["dtype"]) for r in report["runs"]] == [
         ("small", "cast", "float32"), ("small", "cast", "float16"),
         ("small", "inference_codec", "float32"), ("small", "inference_codec", "int8")]
@@ -19,6 +20,11 @@ def test_bench_reports_every_variant(capsys):
         stats = run["decode_step_all_three"]
         assert 0 < stats["median_ms"] <= stats["p95_ms"] <= stats["p99_ms"]
         assert set(run["parameters"]) == {"upper", "lower", "face"}
+        assert run["vs_baseline_matmul"] > 0
+        if run["path"] == "inference_codec":  # weights of the prepared path, against reading them once
+            assert run["weight_MB"] > 0 and run["vs_read_floor"] > 0 and sum(run["kernels"].values()) > 0
+    int8 = report["runs"][-1]["kernels"]
+    assert set(int8) <= {"int8pack", "int8-in-bf16"} and report["machine"]["kernels"]["int8"] in int8
     assert report["baseline_matmul"]["median_ms"] > 0
     assert "quality" not in report
 
