@@ -158,6 +158,18 @@ def check_checkpoints(app: AppConfig) -> None:
             raise ConfigError(f"gesture.{key}: {path} is not a directory ({what})")
 
 
+def check_weight_form(app: AppConfig) -> None:
+    """A gesture.dtype this CPU cannot run fast: one warning line now, or (gesture.dtype_fallback false) a stop."""
+    from gesture.nn.weights import FAST_KERNEL_NEEDS, UnsupportedFormError, require_fast_form
+
+    if "gesture" not in app.run.local_stages or app.gesture.dtype not in FAST_KERNEL_NEEDS:
+        return
+    try:
+        require_fast_form(app.gesture.dtype, "gesture.dtype", app.gesture.dtype_fallback, "gesture.dtype_fallback")
+    except UnsupportedFormError as e:
+        raise ConfigError(str(e)) from None
+
+
 def check_ports(app: AppConfig, worker: bool) -> None:
     """Every tcp port this host will listen on must be free: one line naming the port and the option."""
     bindings = [s for s in app.run.local_stages]
@@ -202,6 +214,7 @@ def main(argv=None) -> int:
         app = with_dialogue_spec(app)
         check_inputs(app)
         check_checkpoints(app)
+        check_weight_form(app)
         check_mp4_target(app)
         check_ports(app, args.worker)
     except (ConfigError, AudioFileError, NoAudioDevice) as e:

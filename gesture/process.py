@@ -102,7 +102,7 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
     if cfg.codec_checkpoints is None:
         raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
     try:
-        require_fast_form(cfg.dtype, "gesture.dtype", fallback=cfg.dtype_fallback)
+        require_fast_form(cfg.dtype, "gesture.dtype", cfg.dtype_fallback, "gesture.dtype_fallback")
     except UnsupportedFormError as error:
         raise ConfigError(str(error)) from None
     expected = cfg.dialogue_spec

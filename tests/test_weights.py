@@ -1,8 +1,10 @@
 """gesture.nn.weights: every form runs on this CPU with the kernel its probe allows, both kernels of a form agree,
 the portable kernels can be forced, and a form this CPU cannot run fast is named in one line."""
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -77,8 +79,6 @@ def test_the_environment_forces_the_portable_kernels():
 
 
 def _env():
-    import os
-
     return {k: v for k, v in os.environ.items() if k != PORTABLE_ENV}
 
 
@@ -110,3 +110,20 @@ def test_stored_weights_are_found_and_counted_once():
     assert sum(w.nbytes for w in found) == 40 * 64 * 4 + shared.nbytes
     assert shared.nbytes in (40 * 64 + 40 * 2, 40 * 64 * 2 + 40 * 2)  # int8 values, or held in bfloat16; scales
     assert sum(kernels_used(tree).values()) == 2
+
+
+def test_launch_stops_in_one_line_when_the_cpu_cannot_run_the_form_and_fallback_is_off(tmp_path):
+    if fast_kernel_error("bfloat16") is not None:
+        expected_code, expected = 2, "error: gesture.dtype=bfloat16: the fast onednn-bf16 kernel needs"
+    else:
+        pytest.skip("this CPU runs oneDNN's bf16 kernel (the stop itself is tested above with a failed probe)")
+    root = Path(__file__).resolve().parents[1]
+    report = tmp_path / "report"
+    speech = root.parent / "shared/data/speech/librivox_0870.wav"
+    done = subprocess.run([sys.executable, "launch.py", "--replay", str(speech), "--headless", "--report",
+                           str(report), "--set", "gesture.dtype=bfloat16", "--set", "gesture.dtype_fallback=false"],
+                          cwd=root, env=_env(), capture_output=True, text=True, timeout=120)
+    assert done.returncode == expected_code
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(expected) and "gesture.dtype_fallback=true" in lines[0]
+    assert not report.exists()  # nothing started

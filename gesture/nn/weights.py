@@ -210,15 +210,17 @@ def slow_form_message(form: str, option: str) -> Optional[str]:
             f"run it ({fast_kernel_error(form)})")
 
 
-def require_fast_form(form: str, option: str, fallback: bool) -> str:
+def require_fast_form(form: str, option: str, fallback: bool, fallback_option: str = "") -> str:
     """Check that `form` runs fast here. If not: with `fallback` log one warning line and return the form (its
-    portable kernel will be used); without, raise UnsupportedFormError with that line."""
+    portable kernel will be used); without, raise UnsupportedFormError with that line (naming `fallback_option`,
+    the setting that allows the portable kernel)."""
     check_form(form, option)
     message = slow_form_message(form, option)
     if message is None:
         return form
     if not fallback:
-        raise UnsupportedFormError(f"{message}; choose float32 or int8, or allow the slower portable kernel")
+        allow = f" or set {fallback_option}=true for the slower portable kernel" if fallback_option else ""
+        raise UnsupportedFormError(f"{message}; choose float32 or int8{allow}")
     log.warning("%s; using the portable kernel (slower)", message)
     return form
 
