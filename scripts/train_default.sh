@@ -119,12 +119,14 @@ mix_data "$WORK/codec_data" "$CODEC_SESSIONS"
 mix_data "$WORK/data" "$SESSIONS"
 timed chunk_cache "$PY" -m gesture.data.build --root "$WORK/codec_data" --out "$WORK/cache"
 timed codecs train_codecs
-rm -rf "$WORK/decoders"
-timed decoders finetune_decoders
-rm -rf "$WORK/lm_data" "$WORK/lm"
+rm -rf "$WORK/decoders" "$WORK/lm_data" "$WORK/lm"
+# The decoder fine-tuning keeps the encoders and quantizers, so the LM's tokens do not wait for it: both run at once.
+timed decoders finetune_decoders &
+decoders_pid=$!
 timed tokenize "$PY" -m gesture.data.tokenize --root "$WORK/data" --codecs "$WORK/codecs" --out "$WORK/lm_data"
 timed lm "${NICE[@]}" "$PY" -m gesture.train_lm --config "$LM_CONFIG" --data "$WORK/lm_data" \
   --codecs "$WORK/codecs" --out "$WORK/lm" --no-progress ${LM_EPOCHS:+--epochs "$LM_EPOCHS"}
+wait "$decoders_pid"
 timed ship ship
 "$PY" scripts/model_cards.py "$WORK" "$SHIP" "$SYNTHETIC"
 du -sh "$SHIP"/* >&2

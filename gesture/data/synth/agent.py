@@ -4,7 +4,10 @@ Composition (all local rotations are offsets applied on top of the BEAT2-calibra
 posture (stance, weight shifts, sway, breathing) -> torso FK -> arm IK to the planned wrist targets
 (gestures.py) with palm twist and wrist flexion -> leg IK to the planted feet -> fingers (hands.py) ->
 head (speaking nods on stressed words, per-sentence tilts/turns, listening nods at the user's pauses)
--> face (jaw from the agent's speech envelope, blinks, brows, smiles, mouth shapes; face.py).
+-> face (jaw from the agent's speech envelope, blinks, brows, smiles, mouth shapes; face.py) -> micro-motion:
+band-limited rotation noise on the torso, neck, head and arm joints (real speakers are never still), its size
+and bandwidth per joint fitted to the real clip (calibration.json ``micro_motion``), louder with the agent's
+own speech and calmer while it listens.
 The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels.
 """
 
@@ -29,7 +32,14 @@ from gesture.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotatio
 from gesture.skeleton import NUM_JOINTS, Skeleton, forward_kinematics
 
 LISTENING_ENERGY = 0.55  # relative liveliness while listening (1 while speaking)
+MICRO_LISTENING = 0.45  # micro-motion while listening, relative to speaking
+MICRO_ENVELOPE_GAIN = 0.5  # micro-motion scale 1 - gain/2 .. 1 + gain/2 with the (smoothed) speech envelope
+MICRO_ENVELOPE_SMOOTH_S = 0.3
+MICRO_GATE_LOG_STD = 0.7  # micro-motion comes and goes: its size is log-normal in time, per body part ...
+MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two, bursts between them)
+MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
 NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
+POLE_OUT, POLE_DOWN = 0.15, -0.8  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
 SIDE_JOINTS = {  # (collar, shoulder, elbow, wrist, hip, knee, ankle, foot) per side
     "left": (13, 16, 18, 20, 1, 4, 7, 10),
     "right": (14, 17, 19, 21, 2, 5, 8, 11),
@@ -106,33 +116,63 @@ def plan_head(rng: np.random.Generator, conv: Conversation, n: int, fps: float, 
     return head, nods
 
 
+SMILE_MOOD_HZ = 0.08  # the resting smile drifts slowly (a mood over ~10 s) ...
+SMILE_MOOD_RANGE = (0.0, 0.7)  # ... within this range of activation
+BROW_STRESS_PROB = 0.4  # a stressed word of the agent raises the brows with this probability
+BROW_AMOUNT = (0.5, 1.0)
+SMILE_AMOUNT = (0.5, 1.0)
+
+
 def plan_face(rng: np.random.Generator, conv: Conversation, n: int, fps: float, env: np.ndarray,
               nods: list[float]) -> np.ndarray:
-    """(T, 100) expression coefficients."""
-    smile = np.full(n, rng.uniform(0.05, 0.2))
+    """(T, 100) expression coefficients.
+
+    Smiles and brow raises are frequent, large and held for a while: a face codec trained on this keeps them only
+    when they carry enough of the expressions' energy (a unit blink moves psi 13x as much as a unit smile)."""
+    low, high = SMILE_MOOD_RANGE
+    mood = low + (high - low) / (1 + np.exp(-1.5 * smooth_noise(rng, n, fps, SMILE_MOOD_HZ)[:, 0]))
+    smile = mood.copy()
     brow, wide, pucker = np.zeros(n), np.zeros(n), np.zeros(n)
     for t in nods:
-        if rng.random() < 0.5:
-            add_bump(smile, fps, t + 0.2, 0.3, rng.uniform(0.5, 1.8), 0.6, rng.uniform(0.3, 0.7))
+        if rng.random() < 0.6:
+            add_bump(smile, fps, t + 0.2, 0.3, rng.uniform(0.5, 1.8), 0.6, rng.uniform(*SMILE_AMOUNT))
     for w in conv.words_of(AGENT):
         add_bump(wide, fps, w.peak_s, 0.06, 0.0, max(w.end_s - w.peak_s, 0.06), rng.uniform(-0.2, 0.5))
         add_bump(pucker, fps, w.peak_s, 0.06, 0.0, max(w.end_s - w.peak_s, 0.06), rng.uniform(-0.2, 0.4))
-        if w.stressed and rng.random() < 0.2:
-            add_bump(brow, fps, w.peak_s, 0.12, 0.15, 0.35, rng.uniform(0.3, 0.7))
+        if w.stressed and rng.random() < BROW_STRESS_PROB:
+            add_bump(brow, fps, w.peak_s, 0.12, rng.uniform(0.15, 0.5), 0.35, rng.uniform(*BROW_AMOUNT))
         if w.word.endswith("?"):
-            add_bump(brow, fps, w.start_s, 0.15, 0.3, 0.4, rng.uniform(0.4, 0.8))
+            add_bump(brow, fps, w.start_s, 0.15, 0.3, 0.4, rng.uniform(*BROW_AMOUNT))
     for turn in conv.turns_of(AGENT, "turn"):
         for _, b in turn.sentence_spans_s:
-            if rng.random() < 0.25:
-                add_bump(smile, fps, b, 0.3, rng.uniform(0.3, 1.0), 0.6, rng.uniform(0.2, 0.5))
+            if rng.random() < 0.4:
+                add_bump(smile, fps, b, 0.3, rng.uniform(0.5, 1.5), 0.6, rng.uniform(*SMILE_AMOUNT))
     for t in user_pauses(conv):
-        if rng.random() < 0.15:
-            add_bump(brow, fps, t + 0.1, 0.15, 0.2, 0.4, rng.uniform(0.2, 0.5))
+        if rng.random() < 0.25:
+            add_bump(brow, fps, t + 0.1, 0.15, 0.3, 0.4, rng.uniform(0.3, 0.7))
     extra_blinks = [t.start_s for t in conv.turns_of(AGENT, "turn") if rng.random() < 0.5]
     return expressions_from_activations({
         "smile": np.clip(smile, 0.0, 1.0), "brow_raise": np.clip(brow, 0.0, 1.0), "lips_apart": 0.35 * env,
         "mouth_wide": wide * env, "pucker": pucker * env, "blink": blink_track(rng, n, fps, extra_blinks),
     })
+
+
+def micro_motion_scale(speaking: np.ndarray, env: np.ndarray, fps: float) -> np.ndarray:
+    """(T,) the micro-motion's scale: calmer while listening, livelier with the agent's own speech energy."""
+    turn = MICRO_LISTENING + (1 - MICRO_LISTENING) * gaussian_filter1d(speaking, 8)
+    voice = 1 + MICRO_ENVELOPE_GAIN * (gaussian_filter1d(env, MICRO_ENVELOPE_SMOOTH_S * fps) - 0.5)
+    return turn * voice
+
+
+def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int, tuple[np.ndarray, float]],
+                 scale: np.ndarray) -> dict[int, np.ndarray]:
+    """Per joint, (T, 3) local rotation offsets: smooth noise of std ``params[j][0]`` (rad per axis) and cutoff
+    ``params[j][1]`` (Hz), times ``scale`` (T,) and its body part's gate (log-normal, unit mean square)."""
+    log_gate = MICRO_GATE_LOG_STD * smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(MICRO_PARTS))  # (T, parts)
+    gate = np.exp(log_gate - MICRO_GATE_LOG_STD**2)  # E[gate^2] = 1
+    part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
+    return {j: smooth_noise(rng, n, fps, hz, 3) * std[None] * (scale * gate[:, part_of.get(j, 0)])[:, None]
+            for j, (std, hz) in sorted(params.items())}
 
 
 def _aa(v) -> np.ndarray:
@@ -180,7 +220,7 @@ class BodySolver:
         chest_rot, chest_pos = rots[:, 9], joints[:, 9]
         target = chest_pos + np.einsum("tij,tj->ti", chest_rot, arms.wrist[:, s])
         ones = np.ones(len(target))
-        pole_local = np.stack([sign * (0.45 + arms.elbow_out[:, s]), -0.35 * ones, -ones], -1)  # elbow out and back
+        pole_local = np.stack([sign * (POLE_OUT + arms.elbow_out[:, s]), POLE_DOWN * ones, -ones], -1)  # elbow out and back
         pole = np.einsum("tij,tj->ti", chest_rot, pole_local)
         chain = self.arm_chains[side]
         local[:, sh], theta = chain.solve(joints[:, sh], rots[:, collar], target, pole)
@@ -204,7 +244,9 @@ class BodySolver:
 
 
 def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Conversation,
-                            skeleton: Skeleton | None = None) -> AgentMotion:
+                            skeleton: Skeleton | None = None,
+                            micro: dict[int, tuple[np.ndarray, float]] | None = None) -> AgentMotion:
+    """The agent's motion; ``micro`` overrides the calibrated micro-motion (``{}``: none, as the fit needs)."""
     skeleton = skeleton or Skeleton.default()
     fps = cfg.motion_fps
     n = int(round(conv.duration_s * fps))
@@ -215,8 +257,14 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
     arms = plan_arms(cfg, rng, conv, n, fps, energy)
     head, nods = plan_head(rng, conv, n, fps, energy, env, speaking)
     expressions = plan_face(rng, conv, n, fps, env, nods)
+    params = load_calibration().micro_motion if micro is None else micro
+    offsets = micro_motion(rng, n, fps, params, micro_motion_scale(speaking, env, fps))
+    if 0 in offsets:  # the pelvis turns before the legs are solved, so the feet stay planted
+        posture.root_offset_aa = posture.root_offset_aa + offsets.pop(0)
     solver = BodySolver(skeleton)
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
+    for j, offset in offsets.items():
+        local[:, j] = local[:, j] @ _aa(offset)
     poses = matrix_to_axis_angle(local)  # (T, 55, 3)
     poses[:, 22] = solver.base[22] + np.stack([JAW_OPEN_RAD * env, 0 * env, 0 * env], -1)
     poses[:, 23:25] = 0.0

@@ -9,7 +9,11 @@ What is measured (at the clip's own frame rate; rotations averaged as quaternion
 - ``relaxed_hand_aa``: the mean pose of the 30 finger joints (the "relaxed" hand shape);
 - ``wrist_chest_m``: percentiles 5/50/95 of each wrist's position in the chest (spine3) frame, which bound the
   gesture space; the median is the hands' rest position;
-- ``wrist_speed_mps``: the mean wrist speed, a reference for the synthetic motion's energy.
+- ``wrist_speed_mps``: the mean wrist speed, a reference for the synthetic motion's energy;
+- ``micro_motion``: per joint of the torso, neck, head and arms, the standard deviation (rad, per local axis) and
+  cutoff (Hz) of the band-limited rotation noise that the agent's joints carry on top of its planned motion
+  (real speakers are never still). Fitted by ``python -m gesture.data.synth.fit`` so that the synthetic agent,
+  driven by the clip's own speech, matches the clip's per-joint rotation spread and median angular speed.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -47,6 +51,7 @@ class Calibration:
     relaxed_hand_aa: np.ndarray  # (30, 3) joints 25..54
     wrist_chest_m: np.ndarray  # (2 sides L/R, 3 percentiles, 3 xyz) in the chest frame
     wrist_speed_mps: float
+    micro_motion: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)  # joint -> ((3,) std rad, Hz)
 
 
 def _mean_rotation(aa: np.ndarray) -> np.ndarray:
@@ -84,6 +89,8 @@ def to_json(cal: Calibration) -> dict:
         "relaxed_hand_aa": np.round(cal.relaxed_hand_aa, 5).tolist(),
         "wrist_chest_m": np.round(cal.wrist_chest_m, 5).tolist(),
         "wrist_speed_mps": round(cal.wrist_speed_mps, 5),
+        "micro_motion": {str(j): {"std_rad": np.round(std, 5).tolist(), "cutoff_hz": round(float(hz), 4)}
+                         for j, (std, hz) in sorted(cal.micro_motion.items())},
     }
 
 
@@ -93,6 +100,8 @@ def from_json(doc: dict) -> Calibration:
         relaxed_hand_aa=np.asarray(doc["relaxed_hand_aa"], np.float64),
         wrist_chest_m=np.asarray(doc["wrist_chest_m"], np.float64),
         wrist_speed_mps=float(doc["wrist_speed_mps"]),
+        micro_motion={int(j): (np.asarray(v["std_rad"], np.float64), float(v["cutoff_hz"]))
+                      for j, v in doc.get("micro_motion", {}).items()},
     )
 
 
@@ -107,7 +116,8 @@ def main(argv=None) -> int:
     parser.add_argument("npz", help="a BEAT2 SMPL-X npz, e.g. ../shared/data/beat2/2_scott_0_1_1.npz")
     parser.add_argument("--out", default=str(CALIBRATION_JSON))
     args = parser.parse_args(argv)
-    Path(args.out).write_text(json.dumps(to_json(calibrate(args.npz)), indent=1) + "\n")
+    fresh = replace(calibrate(args.npz), micro_motion=load_calibration().micro_motion)  # that one has its own fit
+    Path(args.out).write_text(json.dumps(to_json(fresh), indent=1) + "\n")
     print(f"wrote {args.out}")
     return 0
 

@@ -34,7 +34,7 @@ class SynthConfig:
     reaction_s: tuple[float, float] = (0.2, 0.5)  # user onset -> agent stops
     gesture_prob: float = 0.85  # per agent sentence
     family_weights: tuple[float, ...] = (0.4, 0.2, 0.12, 0.16, 0.12)  # in GESTURE_FAMILIES order
-    amplitude: tuple[float, float] = (0.55, 1.3)  # per gesture, relative
+    amplitude: tuple[float, float] = (0.7, 1.6)  # per gesture, relative
     test_fraction: float = 0.1  # the last sessions go to the test split
     speaker_name: str = "synth"  # take ids are <speaker_number>_<speaker_name>_0_<k>_<k>
     speaker_number: int = 31

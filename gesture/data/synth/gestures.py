@@ -26,6 +26,14 @@ from gesture.data.synth.tracks import KeyTrack, smooth_noise
 
 SIDES = (1.0, -1.0)  # left, right: the sign of x in the chest frame
 MIN_STROKE_GAP_S = 0.45
+# The gesture space against the real clip's wrist percentiles (chest frame); chosen by the realism measures of the
+# agent driven by the clip's speech (gesture.realism): the real speaker keeps the upper arms near the body and
+# moves the forearms, so hands rest low, gesture high in front, and spread sideways little.
+REST_ABOVE_P5_M = 0.0
+CENTRE_ABOVE_MEDIAN_M = 0.08
+CENTRE_WIDTH = 0.85
+SIZE_WIDTH_M = (0.08, 0.25)
+RETRACT_GAP_S = 1.0  # the hands go down when the next sentence is further away than this
 CHANNELS = ("wrist", "elbow_out", "supination", "flex", "hand")
 MAX_RATE = {"wrist": 0.8, "elbow_out": 1.5, "supination": 4.0, "flex": 3.0, "hand": 4.0}  # units/s per segment
 
@@ -39,8 +47,8 @@ def gesture_space() -> tuple[np.ndarray, np.ndarray]:
     """Left-side rest and centre wrist positions in the chest frame, from the BEAT2 percentiles."""
     w = load_calibration().wrist_chest_m  # (side, percentile 5/50/95, xyz)
     left = (w[0] + w[1] * np.array([-1.0, 1.0, 1.0])[None]) / 2  # mirror-averaged (3 pct, 3)
-    rest = np.array([0.8 * left[1, 0], left[0, 1] + 0.06, left[0, 2] + 0.06])
-    centre = np.array([0.95 * left[1, 0], left[1, 1] + 0.02, left[1, 2] + 0.03])
+    rest = np.array([0.8 * left[1, 0], left[0, 1] + REST_ABOVE_P5_M, left[0, 2] + 0.06])
+    centre = np.array([CENTRE_WIDTH * left[1, 0], left[1, 1] + CENTRE_ABOVE_MEDIAN_M, left[1, 2] + 0.03])
     return rest, centre
 
 
@@ -130,7 +138,7 @@ class GesturePlanner:
             arm.key(strokes[k], wrist=offer - (0, 0.03 * amp, 0))
 
     def _deictic(self, arm: _Arm, strokes: list[float], amp: float) -> None:
-        targets = ((0.12, 0.02, 0.44), (0.38, 0.0, 0.3), (0.14, 0.1, 0.42), (0.04, -0.08, 0.2))
+        targets = ((0.12, 0.02, 0.44), (0.28, 0.0, 0.32), (0.14, 0.1, 0.42), (0.04, -0.08, 0.2))
         aim = mirror(targets[int(self.rng.integers(len(targets)))], arm.side) + self.rng.normal(0, 0.02, 3)
         arm.key(strokes[0] - 0.15, wrist=aim - mirror((0.0, 0.0, 0.06), arm.side), hand=shape_weights("point", 0.7),
                 supination=-0.3, elbow_out=0.3)
@@ -165,7 +173,7 @@ class GesturePlanner:
     def _gesture(self, family: str, strokes: list[float]) -> list[_Arm]:
         amp = self.rng.uniform(*self.cfg.amplitude)
         hands = self._hands_for(family)
-        widths = self.rng.uniform(0.12, 0.33, len(strokes)) * (0.6 + 0.4 * amp)
+        widths = self.rng.uniform(*SIZE_WIDTH_M, len(strokes)) * (0.6 + 0.4 * amp)
         heights = self.rng.uniform(-0.2, 0.0, len(strokes))
         for arm in hands:
             prep = strokes[0] - self.rng.uniform(0.35, 0.6)
@@ -195,7 +203,7 @@ class GesturePlanner:
                         self._sympathetic(arm, strokes)
             cut = turn.interrupted and b >= turn.end_s - 1e-6
             end = turn.end_s + self.rng.uniform(0.05, 0.2) if cut else b + self.rng.uniform(0.15, 0.45)
-            if cut or next_a - end > 1.8:
+            if cut or next_a - end > RETRACT_GAP_S:
                 for arm in self.arms:
                     arm.retract(max(end, arm.last_time), self.rng.uniform(0.5, 0.9))
         self._listening_adaptors(conv, sentences)
