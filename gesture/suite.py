@@ -7,7 +7,7 @@ against the local backend's condition spec) and measures:
   the same data out of training, so none of them was seen), the agent's motion generated step by step from what
   the local dialogue backend would emit for the session's agent speech (speech codes of the agent audio, a text
   token at each word's first step), against the session's ground truth:
-  BeatAlign and L1 divergence (gesture.evaluate's protocol), voice-activity accuracy of the VA head, the ratio
+  BeatAlign and L1 divergence (the reference protocol of gesture.metrics, built-in skeleton), voice-activity accuracy of the VA head, the ratio
   of mean joint speed while listening to while speaking, and the codecs' MPJPE (all three regions through
   encode -> decode). 30 minutes in all: the listening/speaking ratio of a single minute moves by ±40 % with the
   sampling seed alone, more than the goal's tolerance;
@@ -173,7 +173,7 @@ class HeldoutSession:
     take: Take
     tokens: TokenizedTake  # cut to the evaluated steps
     pcm_24k: np.ndarray
-    audio_16k: np.ndarray
+    speech: M.SpeechAudio  # the agent audio at its own rate, cut to the evaluated steps
     poses: np.ndarray  # (2T, 55, 3) canonical GT
     trans: np.ndarray
     expressions: np.ndarray
@@ -225,8 +225,9 @@ def load_heldout(root: Path, codecs: dict[str, GestureCodec], n_sessions: int, m
         wav = agent_audio_path(take)
         seconds = n / STEP_HZ
         pcm = load_audio(wav, SAMPLE_RATE_HZ)[: int(seconds * SAMPLE_RATE_HZ)]
-        audio_16k = load_audio(wav, M.AUDIO_SAMPLE_RATE_HZ)[: int(seconds * M.AUDIO_SAMPLE_RATE_HZ)]
-        sessions.append(HeldoutSession(take, tok, pcm, audio_16k, poses, trans, motion.expressions[: 2 * n]))
+        native = M.load_speech(wav)
+        speech = M.SpeechAudio(native.pcm[: int(seconds * native.sample_rate_hz)], native.sample_rate_hz)
+        sessions.append(HeldoutSession(take, tok, pcm, speech, poses, trans, motion.expressions[: 2 * n]))
     return sessions
 
 
@@ -238,7 +239,7 @@ def evaluate_heldout(generator: GestureGenerator, codecs: dict[str, GestureCodec
     for s in sessions:
         gen = run_generator(generator, s.tokens.text_tokens, s.tokens.audio_codes, s.pcm_24k)
         gt = M.MotionClip(s.poses, s.trans, s.expressions, MOTION_FPS)
-        scores = evaluate_motion(gen.clip(), gt, s.audio_16k, mean_speed, skeleton, encoders=())
+        scores = evaluate_motion(gen.clip(), gt, s.speech, mean_speed, skeleton, encoders=())
         vad = s.tokens.vad
         rows.append({
             "session": s.take.take_id,
@@ -278,8 +279,7 @@ def evaluate_beat2_playback(generator: GestureGenerator, dialogue_cfg, opts: Sui
     gen = run_generator(generator, text, audio, pcm)
     poses, trans = canonicalize(gt.poses[: 2 * n_steps], gt.trans[: 2 * n_steps])
     gt_clip = M.MotionClip(poses, trans, gt.expressions[: 2 * n_steps], MOTION_FPS)
-    audio_16k = load_audio(opts.beat2_wav, M.AUDIO_SAMPLE_RATE_HZ)
-    scores = evaluate_motion(gen.clip(), gt_clip, audio_16k, mean_speed, skeleton, encoders=())
+    scores = evaluate_motion(gen.clip(), gt_clip, M.load_speech(opts.beat2_wav), mean_speed, skeleton, encoders=())
     keys = ("beat_align", "beat_align_gt", "l1div", "l1div_gt", "beat_align_corrected", "beat_align_corrected_gt")
     return {"clip": opts.beat2_motion.stem, "seconds": n_steps / STEP_HZ,
             "text_tokens": int((text >= 0).sum()), **{k: scores[k] for k in keys}}

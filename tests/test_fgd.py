@@ -96,3 +96,31 @@ def test_frechet_of_encoder_features_separates_motions():
     same = frechet_distance(enc.features(calm, None), enc.features(calm.copy(), None))
     apart = frechet_distance(enc.features(calm, None), enc.features(wild, None))
     assert same == pytest.approx(0.0, abs=1e-6) and apart > 1e-3
+
+
+@needs_clip
+def test_kinetic_fgd_grows_with_noise_on_the_scale_of_real_differences():
+    """GT against itself delayed 0.4 s, against its other half, frozen, and with growing rotation noise on the
+    body joints: the noise's distances grow with it and stay between a delay's and a frozen body's."""
+    from gesture import metrics as M
+    from gesture.fgd import kinetic_fgd
+
+    gt = M.load_motion_clip(CLIP_NPZ).at_fps(25)
+    gt_joints = M.prepare_pair(gt, gt).gt_joints
+
+    def joints_of(poses):
+        clip = M.MotionClip(poses, gt.trans, gt.expressions, 25)
+        return M.prepare_pair(clip, clip).gt_joints
+
+    delayed = kinetic_fgd(joints_of(np.concatenate([np.repeat(gt.poses[:1], 10, 0), gt.poses[:-10]])), gt_joints)
+    half = len(gt_joints) // 2
+    halves = kinetic_fgd(gt_joints[:half], gt_joints[half:])
+    frozen = kinetic_fgd(np.repeat(gt_joints[:1], len(gt_joints), 0), gt_joints)
+    noise = []
+    for sigma in (0.0025, 0.005, 0.01, 0.02):
+        poses = gt.poses.reshape(len(gt.poses), -1).copy()
+        poses[:, 3:66] += np.random.default_rng(0).normal(0, sigma, size=(len(poses), 63)).astype(np.float32)
+        noise.append(kinetic_fgd(joints_of(poses.reshape(-1, 55, 3)), gt_joints))
+    assert kinetic_fgd(gt_joints, gt_joints) == pytest.approx(0.0, abs=1e-6)
+    assert delayed < 0.01 < halves < 1.0 < noise[0]
+    assert all(a < b for a, b in zip(noise, noise[1:])) and noise[-1] < frozen < 100

@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from gesture import metrics as M
-from gesture.data.audio import load_audio
 from gesture.evaluate import evaluate_motion, main as evaluate_main
 from gesture.fgd import KineticGeometricEncoder, frechet_distance
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, MEAN_VEL_NPY, needs_clip
@@ -23,7 +22,7 @@ def test_mpjpe_and_l1div_known_values():
     assert M.mpjpe_m(pred, gt) == pytest.approx(0.005)
     joints = np.zeros((2, 55, 3))
     joints[1] = 1.0  # mean 0.5: |x - mean| = 0.5 for 165 coordinates in each frame
-    assert M.l1_divergence(joints) == pytest.approx(0.5 * 165)
+    assert M.l1_div(joints) == pytest.approx(0.5 * 165)
 
 
 def test_frechet_distance_known_values():
@@ -57,19 +56,16 @@ def test_beat_detection_quirk_vs_corrected():
     joints = np.zeros((400, 55, 3))
     step = speed_norm * mean[20] / fps
     joints[:, 20, 0] = np.cumsum(step) - step / 2  # central differences then give a symmetric speed
-    corrected = M.motion_beats_s(joints, mean, fps, trim, reference_quirk=False)[BEAT_INDEX_WRIST]
+    corrected = M.motion_beat_frames(joints, mean, fps, trim, reference_quirk=False)[20] / fps  # left wrist
     np.testing.assert_allclose(corrected, (np.arange(180, 331, 30) - trim) / fps)
     # the reference tests the threshold at the window-relative index as if absolute: the minimum at
     # absolute frame 180 (relative 120) is tested at frame 120, where the wrist is slow, and dropped
-    quirk = M.motion_beats_s(joints, mean, fps, trim, reference_quirk=True)[BEAT_INDEX_WRIST]
+    quirk = M.motion_beat_frames(joints, mean, fps, trim, reference_quirk=True)[20] / fps
     np.testing.assert_allclose(quirk, (np.arange(210, 331, 30) - trim) / fps)
     assert M.beat_align_score(corrected, [corrected]) == pytest.approx(1.0)
     assert M.beat_align_score(corrected + 0.3, [corrected]) == pytest.approx(np.exp(-0.5))
     assert M.beat_align_score(corrected, [np.array([])]) == 0.0
     assert np.isnan(M.beat_align_score(np.array([]), [corrected]))
-
-
-BEAT_INDEX_WRIST = M.BEAT_JOINTS.index(20)
 
 
 def _delayed(clip: M.MotionClip, frames: int) -> M.MotionClip:
@@ -79,31 +75,31 @@ def _delayed(clip: M.MotionClip, frames: int) -> M.MotionClip:
     return M.MotionClip(shift(clip.poses), shift(clip.trans), shift(clip.expressions), clip.fps)
 
 
-# Pinned metrics of the real clip 2_scott_0_1_1 (built-in skeleton, reference protocol).
+# Pinned metrics of the real clip 2_scott_0_1_1 (built-in skeleton, reference protocol: every frame at 30 fps).
 PINNED_GT_VS_GT = {
-    "frames_30fps": 1785,
+    "frames_30fps": 1905,
     "mpjpe_mm": 0.0,
-    "l1div": 14.312316,
+    "l1div": 14.312405,
     "face_expression_mse": 0.0,
     "fgd_kinetic_geometric": 0.0,
-    "beat_align": 0.72100155,
-    "beat_align_corrected": 0.46773542,
+    "beat_align": 0.70687197,
+    "beat_align_corrected": 0.45212939,
 }
 PINNED_GT_VS_DELAYED_10 = {
-    "frames_30fps": 1785,
-    "mpjpe_mm": 153.14580,
-    "l1div": 14.445551,
-    "face_expression_mse": 0.29191929,
-    "fgd_kinetic_geometric": 0.020367004,
-    "beat_align": 0.70523456,
-    "beat_align_corrected": 0.46281732,
+    "frames_30fps": 1905,
+    "mpjpe_mm": 152.19951,
+    "l1div": 14.327811,
+    "face_expression_mse": 0.31355980,
+    "fgd_kinetic_geometric": 0.0030115851,
+    "beat_align": 0.70251193,
+    "beat_align_corrected": 0.45193671,
 }
 
 
 @needs_clip
 def test_real_clip_pinned_metrics():
     gt = M.load_motion_clip(CLIP_NPZ)
-    audio = load_audio(CLIP_WAV, 16000)
+    audio = M.load_speech(CLIP_WAV)
     mean = M.load_mean_speed(MEAN_VEL_NPY)
     same = evaluate_motion(gt, gt, audio, mean)
     delayed = evaluate_motion(_delayed(gt.at_fps(25), 10), gt, audio, mean)  # 0.4 s late

@@ -1,0 +1,96 @@
+"""The reference's own metric outputs on the real clip (../shared/reference/metrics_golden): gesture.evaluate
+must give the same numbers by the same protocol (issue 17)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gesture import metrics as M
+from gesture.evaluate import evaluate_motion
+from tests.data.beat2_clip import CLIP_WAV, MEAN_VEL_NPY
+
+torch.set_num_threads(1)
+
+REPO = Path(__file__).resolve().parents[1]
+GOLDEN = REPO.parent / "shared" / "reference" / "metrics_golden"
+GT_NPZ = GOLDEN / "gt_25fps.npz"
+BODY_NPZ = GOLDEN / "SMPLX_PROCEDURAL.npz"
+needs_golden = pytest.mark.skipif(not (GOLDEN / "expected_gt_vs_gt.json").is_file() or not CLIP_WAV.is_file(),
+                                  reason=f"reference metric outputs not found at {GOLDEN}")
+
+
+@pytest.fixture(scope="module")
+def expected():
+    return json.loads((GOLDEN / "expected_gt_vs_gt.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def joints():
+    gt = M.load_motion_clip(GT_NPZ)
+    return M.prepare_pair(gt, gt, M.SmplxBody(BODY_NPZ)).gt_joints
+
+
+@needs_golden
+def test_cli_gives_the_reference_l1div_mpjpe_and_frames(expected):
+    proc = subprocess.run([sys.executable, "-m", "gesture.evaluate", "--motion", str(GT_NPZ), "--gt", str(GT_NPZ),
+                           "--wav", str(CLIP_WAV), "--mean-vel", str(MEAN_VEL_NPY), "--smplx-model", str(BODY_NPZ),
+                           "--json"], cwd=REPO, capture_output=True, text=True, check=True)
+    got, want = json.loads(proc.stdout), expected["metrics"]
+    assert got["frames_30fps"] == want["n_frames_30fps"]
+    assert got["l1div"] == pytest.approx(want["l1div_pred"], rel=1e-5)
+    assert got["l1div_gt"] == pytest.approx(want["l1div_gt"], rel=1e-5)
+    assert got["mpjpe_mm"] / 1000 == pytest.approx(want["mpjpe_m"], rel=1e-5, abs=1e-12)
+    assert np.isfinite(got["beat_align"]) and got["beat_align"] == got["beat_align_gt"]
+
+
+@needs_golden
+def test_joints_match_the_reference_body_forward(expected, joints):
+    inter = expected["intermediates"]
+    assert list(joints.shape) == inter["joints_rec_30fps_shape"]
+    np.testing.assert_allclose(joints[100].reshape(-1), inter["joints_rec_30fps_frame100"], rtol=0, atol=2e-6)
+    assert np.abs(joints.astype(np.float64)).sum() == pytest.approx(inter["joints_rec_30fps_sum_abs"], rel=1e-6)
+    np.testing.assert_allclose(joints.reshape(-1, 3).astype(np.float64).mean(0), inter["joints_rec_30fps_mean_xyz"], rtol=1e-5)
+
+
+@needs_golden
+def test_audio_onsets_equal_the_reference(expected):
+    inter = expected["intermediates"]
+    audio = M.speech_at_16k(M.load_speech(CLIP_WAV))
+    window = M.beat_align_audio_window(audio, expected["metrics"]["n_frames_30fps"])
+    assert len(audio) - 32000 == inter["audio_slice_args"][1] and len(window) == 993559 - 32000
+    onsets = M.beat_align_onsets_s(M.load_speech(CLIP_WAV), expected["metrics"]["n_frames_30fps"])
+    np.testing.assert_array_equal(onsets, inter["onsets"])
+
+
+@needs_golden
+@pytest.mark.xfail(strict=True, reason="open: our velocity minima differ from the reference's at about 1700 of "
+                   "4600 beat frames although the joints agree to 1e-6 m (L1div exact); see the issue 17 report")
+def test_motion_beats_of_every_joint_equal_the_reference(expected, joints):
+    beats = M.motion_beat_frames(joints, M.load_mean_speed(MEAN_VEL_NPY))
+    assert [b.tolist() for b in beats] == expected["intermediates"]["beats_gt"]
+
+
+@needs_golden
+@pytest.mark.xfail(strict=True, reason="follows from the beat frames above (0.7137 against 0.7365)")
+def test_beat_align_on_the_stored_onsets_equals_the_reference(expected):
+    gt = M.load_motion_clip(GT_NPZ)
+    onsets = np.array(expected["intermediates"]["onsets"])
+    got = evaluate_motion(gt, gt, None, M.load_mean_speed(MEAN_VEL_NPY), M.SmplxBody(BODY_NPZ), encoders=(),
+                          onsets_s=onsets)
+    assert got["beat_align"] == pytest.approx(expected["metrics"]["beat_align_pred"], abs=1e-6)
+    assert got["beat_align_gt"] == pytest.approx(expected["metrics"]["beat_align_gt"], abs=1e-6)
+
+
+@needs_golden
+def test_body_with_ten_shape_components_uses_ten_betas():
+    body = M.SmplxBody(BODY_NPZ)
+    assert body.num_shape_components == 10 and body.expression_dirs.shape[-1] == 10
+    betas = M.load_motion_clip(GT_NPZ).betas
+    np.testing.assert_array_equal(body.rest_joints(betas), body.rest_joints(betas[:10]))
+    assert not np.allclose(body.rest_joints(betas), body.rest_joints(None))
+    assert M.SmplxBody(BODY_NPZ, num_shape_components=20).num_shape_components == 20
