@@ -10,6 +10,8 @@ removes (the render stage reports it). A write that fails (disk full, file too l
 from __future__ import annotations
 
 import os
+import queue
+import threading
 from fractions import Fraction
 from pathlib import Path
 
@@ -121,6 +123,61 @@ class Mp4Writer:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         self.close(commit=exc_type is None)
+
+
+class BackgroundMp4Writer:
+    """An Mp4Writer fed by a worker thread, so H.264 encoding overlaps the caller's rendering (libx264 and the GL
+    readback both run without the GIL) and stays off the step's latency. `write` queues a frame (blocking only
+    when `max_pending` frames wait); frames are written in order. The first error of the worker is raised by the
+    next `write`, `drain` or `close`; frames queued after it are discarded."""
+
+    _STOP = object()
+
+    def __init__(self, writer: Mp4Writer, max_pending: int = 50) -> None:
+        self.writer = writer
+        self.width, self.height, self.tmp_path = writer.width, writer.height, writer.tmp_path
+        self._queue: queue.Queue = queue.Queue(maxsize=max_pending)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="mp4-writer", daemon=True)
+        self._thread.start()
+
+    @property
+    def frames_written(self) -> int:
+        return self.writer.frames_written
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not self._STOP:
+            try:
+                if self._error is None:
+                    self.writer.write(*item)
+            except BaseException as err:  # kept for the caller's thread
+                self._error = err
+            finally:
+                self._queue.task_done()
+        self._queue.task_done()
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def write(self, frame_rgb: np.ndarray, audio: np.ndarray) -> None:
+        self._raise_error()
+        self._queue.put((frame_rgb, audio))
+
+    def drain(self) -> None:
+        """Wait until every queued frame is written."""
+        self._queue.join()
+        self._raise_error()
+
+    def close(self, commit: bool = True) -> Path | None:
+        """Write what is queued (on commit), stop the worker and close the file as `Mp4Writer.close` does."""
+        if self._thread.is_alive():
+            self._queue.put(self._STOP)
+            self._thread.join()
+        if self._error is not None:
+            self.writer.close(commit=False)
+            raise self._error
+        return self.writer.close(commit=commit)
 
 
 def mix_conversation(agent_pcm: np.ndarray, user_pcm: np.ndarray, stereo: bool) -> np.ndarray:

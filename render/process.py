@@ -23,7 +23,7 @@ from agent.messages import DialogueStep, GestureStep, Message, RenderFrame
 from agent.stage import RunContext, StageFailed
 from agent.timing import FRAME_SAMPLES, FRAMES_PER_STEP
 from render.config import RenderConfig
-from render.mp4 import Mp4Writer, Mp4WriteError, mix_conversation
+from render.mp4 import BackgroundMp4Writer, Mp4Writer, Mp4WriteError, mix_conversation
 from render.view import AvatarView, load_body
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ class StepTimeline:
     (its missing frames repeat the last frame, missing audio is silence). `finish` writes whatever is left.
     """
 
-    def __init__(self, writer: Mp4Writer, stereo: bool, live: bool) -> None:
+    def __init__(self, writer: Mp4Writer | BackgroundMp4Writer, stereo: bool, live: bool) -> None:
         self.writer, self.stereo, self.live = writer, stereo, live
         self.audio: dict[int, np.ndarray] = {}
         self.frames: dict[int, dict[int, np.ndarray]] = {}
@@ -87,6 +87,8 @@ class StepTimeline:
 
     def finish(self) -> None:
         self._drain(final=True)
+        if isinstance(self.writer, BackgroundMp4Writer):
+            self.writer.drain()
 
 
 class RenderComponent:
@@ -103,8 +105,9 @@ class RenderComponent:
         self.view.reset()
         self.timeline: StepTimeline | None = None
         if cfg.mp4_path:
-            writer = Mp4Writer(Path(cfg.mp4_path), self.width, self.height,
-                               channels=2 if cfg.mp4_audio == "stereo" else 1, crf=cfg.mp4_crf, preset=cfg.mp4_preset)
+            writer = BackgroundMp4Writer(Mp4Writer(Path(cfg.mp4_path), self.width, self.height,
+                                                   channels=2 if cfg.mp4_audio == "stereo" else 1, crf=cfg.mp4_crf,
+                                                   preset=cfg.mp4_preset))
             self.timeline = StepTimeline(writer, cfg.mp4_audio == "stereo", run.live)
             self.timeline_failed = False
         self.rendered_frames = 0

@@ -9,7 +9,7 @@ from agent.messages import DialogueStep, GestureStep
 from agent.stage import RunContext
 from agent.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
 from render.config import RenderConfig
-from render.mp4 import Mp4Error, Mp4Writer
+from render.mp4 import BackgroundMp4Writer, Mp4Error, Mp4Writer
 from render.testing import (BEAT2_NPZ, BEAT2_WAV, check_av_sync, decode, needs_beat2, needs_osmesa, silhouette,
                             silhouette_center)
 
@@ -39,6 +39,30 @@ def test_error_or_interrupt_leaves_no_file(tmp_path):
                 writer.write(np.zeros((64, 64, 3), np.uint8), np.zeros(FRAME_SAMPLES, np.float32))
                 raise error
         assert list(tmp_path.iterdir()) == []
+
+
+def test_background_writer_writes_the_same_file_and_raises_the_workers_error(tmp_path):
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(30)]
+    audio = rng.uniform(-0.5, 0.5, (30, FRAME_SAMPLES)).astype(np.float32)
+    direct, queued = tmp_path / "direct.mp4", tmp_path / "queued.mp4"
+    with Mp4Writer(direct, 64, 48) as writer:
+        for frame, samples in zip(frames, audio):
+            writer.write(frame, samples)
+    background = BackgroundMp4Writer(Mp4Writer(queued, 64, 48), max_pending=4)
+    for frame, samples in zip(frames, audio):
+        background.write(frame, samples)
+    background.drain()
+    assert background.frames_written == 30
+    assert background.close() == queued and direct.read_bytes() == queued.read_bytes()
+
+    failing = BackgroundMp4Writer(Mp4Writer(tmp_path / "bad.mp4", 64, 48))
+    failing.write(np.zeros((10, 10, 3), np.uint8), audio[0])  # the worker raises; the caller sees it next
+    with pytest.raises(Mp4Error, match="frame must be"):
+        failing.drain()
+    with pytest.raises(Mp4Error, match="frame must be"):
+        failing.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["direct.mp4", "queued.mp4"]  # no partial file
 
 
 def test_writer_rejects_bad_input(tmp_path):
