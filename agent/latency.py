@@ -80,10 +80,10 @@ class LatencyRecorder:
         summary = self.summary(counters, clock, timing, live)
         (run_dir / "latency.json").write_text(json.dumps(summary, indent=2))
         if self.e2e_ms:
-            self._plot(run_dir / "latency.png")
+            self._plot(run_dir / "latency.png", live)
         return summary
 
-    def _plot(self, path: Path) -> None:
+    def _plot(self, path: Path, live: bool) -> None:
         import matplotlib
 
         matplotlib.use("Agg")
@@ -96,12 +96,15 @@ class LatencyRecorder:
             timeline.fill_between(self.steps, bottom, bottom + total, step="mid", alpha=0.7, label=stage)
             bottom += total
         timeline.plot(self.steps, self.e2e_ms, color="k", lw=0.8, label="end to end")
-        timeline.set(xlabel="step (80 ms)", ylabel="ms", title="Latency per step, stacked by stage")
+        title = "Latency per step, stacked by stage" if live else \
+            "Offline run: time per step, stacked by stage (mostly queueing behind the credit window, not latency)"
+        timeline.set(xlabel="step (80 ms)", ylabel="ms", title=title)
         timeline.legend(loc="upper right", fontsize=8)
         hist.hist(self.e2e_ms, bins=60, color="tab:blue")
         for p in PERCENTILES:
             hist.axvline(np.percentile(self.e2e_ms, p), color="k", ls="--", lw=0.8)
-        hist.set(xlabel="end-to-end latency (ms); dashed: p50, p95, p99", ylabel="steps")
+        hist.set(xlabel=f"end-to-end {'latency' if live else 'time incl. queueing'} (ms); dashed: p50, p95, p99",
+                 ylabel="steps")
         fig.tight_layout()
         fig.savefig(path, dpi=90)
         plt.close(fig)

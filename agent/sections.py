@@ -34,7 +34,7 @@ class BusConfig:
     live_queue_steps: int = 4
     credit_window_steps: int = 32
     heartbeat_s: float = 0.25
-    heartbeat_timeout_s: float = 5.0
+    heartbeat_timeout_s: float = 15.0
     ready_timeout_s: float = 180.0
     stop_timeout_s: float = 1.5
     max_handler_failures: int = 16

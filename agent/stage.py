@@ -11,7 +11,8 @@ A stage supplies a `Component` (and the io stage also a `Source`). The runner:
   cannot be written), or fails on `bus.max_handler_failures` messages in a row, fails the stage: it stops
   handling data and reports the error in its heartbeats, and the supervisor ends the run with it.
 
-Heartbeats carry the stage's counters, among them `last_step_out` (the last step it published) and `cpu_s` (its
+Heartbeats carry the stage's counters, among them `progress_step` (the last step it published; live, also the
+last step it handled, since a live stage may drop late work on purpose) and `cpu_s` (its
 process's CPU time), and the partial files its component is writing, so the supervisor can detect a stage
 that makes no progress while its input waits, and remove a killed stage's partial files.
 """
@@ -143,7 +144,7 @@ class StageRunner:
         self.failures_in_a_row = 0
         self.fatal_error: Optional[str] = None
         self.handled = 0
-        self.last_step_out = -1
+        self.progress_step = -1
         self.published = 0  # messages on the stage's output topic
         self.next_step = 0
         self.source_t0_ns = 0
@@ -236,7 +237,7 @@ class StageRunner:
     def counters(self) -> dict[str, int | float]:
         counters = {"dropped": self.sub.dropped, "lost": self.sub.lost, "decode_errors": self.sub.decode_errors,
                     "handler_errors": self.handler_errors, "handled": self.handled, "sent_steps": self.next_step,
-                    "published": self.published, "last_step_out": self.last_step_out,
+                    "published": self.published, "progress_step": self.progress_step,
                     "cpu_s": round(time.process_time(), 3)}
         extra = getattr(self.component, "counters", None)
         if callable(extra):
@@ -261,6 +262,8 @@ class StageRunner:
                            f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
             return
         self.failures_in_a_row = 0
+        if self.run_ctx.live:
+            self.progress_step = max(self.progress_step, msg.step)
         for out in outputs:
             out.session, out.step, out.t_origin_ns = msg.session, msg.step, msg.t_origin_ns
             out.stamps = {**msg.stamps, self.name: time.monotonic_ns()}
@@ -277,7 +280,7 @@ class StageRunner:
     def _publish(self, out: Message) -> None:
         self.pub.send(out)
         if out.topic == OUTPUT_TOPIC[self.name]:
-            self.last_step_out = max(self.last_step_out, out.step)
+            self.progress_step = max(self.progress_step, out.step)
             self.published += 1
         if self.name == self.topology.sink:
             frame_index = getattr(out, "frame_index", 0)

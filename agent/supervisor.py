@@ -56,8 +56,8 @@ class StageStatus:
     counters: dict = field(default_factory=dict)
     error: Optional[str] = None  # the failure the stage reported
     partial_files: tuple[str, ...] = ()  # files it is writing under a temporary name
-    last_step_out: int = -1
-    progress_s: float = field(default_factory=time.monotonic)  # when last_step_out last moved
+    progress_step: int = -1
+    progress_s: float = field(default_factory=time.monotonic)  # when progress_step last moved
 
 
 class Supervisor:
@@ -193,8 +193,8 @@ class Supervisor:
             status.counters = msg.detail.get("counters", status.counters)
             status.error = status.error or msg.detail.get("error")
             status.partial_files = tuple(msg.detail.get("partial_files", status.partial_files))
-            if status.counters.get("last_step_out", -1) != status.last_step_out:
-                status.last_step_out = status.counters.get("last_step_out", -1)
+            if status.counters.get("progress_step", -1) != status.progress_step:
+                status.progress_step = status.counters.get("progress_step", -1)
                 status.progress_s = status.last_beat_s
         elif msg.command == Command.PONG:
             self.clock.add(msg.source, msg.detail["t0"], msg.detail["t1"], msg.detail["t2"], time.monotonic_ns())
@@ -228,11 +228,11 @@ class Supervisor:
         for upstream, name in zip(self.pipeline, self.pipeline[1:]):
             status, ahead = self.stages[name], self.stages[upstream]
             idle_s = now - max(status.progress_s, self.started_s)
-            if status.state == "running" and ahead.last_step_out > status.last_step_out \
+            if status.state == "running" and ahead.progress_step > status.progress_step \
                     and idle_s > self.app.bus.stall_timeout_s:
                 raise RunFailed(f"stage '{name}' made no progress for {idle_s:.0f} s while its input waited "
-                                f"(it published up to step {status.last_step_out}, '{upstream}' up to step "
-                                f"{ahead.last_step_out}; bus.stall_timeout_s={self.app.bus.stall_timeout_s:g}); "
+                                f"(it got to step {status.progress_step}, '{upstream}' to step "
+                                f"{ahead.progress_step}; bus.stall_timeout_s={self.app.bus.stall_timeout_s:g}); "
                                 f"see {self.run_ctx.run_dir / f'{name}.log'}")
 
     # ---- stopping --------------------------------------------------------------------------------------------

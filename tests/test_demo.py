@@ -18,7 +18,8 @@ def test_demo_listens_answers_and_gestures(tmp_path):
     proc = subprocess.run([sys.executable, "launch.py", "--headless", "--mp4", str(out), "--report", str(tmp_path),
                            "--set", "render.size=160"], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "end to end" in proc.stdout  # the latency table
+    # an offline run's table: throughput and compute, not queueing shown as end-to-end latency
+    assert "x real time" in proc.stdout and "frames/s" in proc.stdout and "end to end" not in proc.stdout
 
     latency = json.loads((tmp_path / "latency.json").read_text())
     n_steps = latency["steps_measured"]

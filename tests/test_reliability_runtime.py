@@ -124,8 +124,8 @@ def test_a_stage_that_makes_no_progress_while_its_input_waits_fails_the_run(tmp_
     code, output = finish(proc)
     assert code == 1, output
     line = error_line(output)
-    assert re.fullmatch(r"stage 'gesture' made no progress for [2-9] s while its input waited \(it published up to "
-                        r"step 4, 'dialogue' up to step \d+; bus.stall_timeout_s=2\); see .*gesture.log", line), line
+    assert re.fullmatch(r"stage 'gesture' made no progress for [2-9] s while its input waited \(it got to "
+                        r"step 4, 'dialogue' to step \d+; bus.stall_timeout_s=2\); see .*gesture.log", line), line
     assert leftovers(proc.pid) == [] and ipc_dirs(proc.pid) == []
 
 

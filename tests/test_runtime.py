@@ -38,9 +38,10 @@ def talk(tmp_path) -> tuple[Path, int]:
 
 
 def launch(args: list[str], report: Path, env: dict | None = None, **kw) -> subprocess.Popen:
-    """launch.py with the test stages; an option in `args` wins over them (a later --set wins)."""
-    cmd = [sys.executable, str(ROOT / "launch.py"), *TEST_STAGES, "--set", f"io.tail_silence_s={TAIL_S}", *args,
-           "--report", str(report)]
+    """launch.py with the test stages and a dashboard on any free port (tests may run beside another run);
+    an option in `args` wins over these (a later --set wins)."""
+    cmd = [sys.executable, str(ROOT / "launch.py"), *TEST_STAGES, "--set", f"io.tail_silence_s={TAIL_S}",
+           "--set", "dashboard.port=0", *args, "--report", str(report)]
     return subprocess.Popen(cmd, cwd=ROOT, env={**os.environ, **(env or {})}, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True, **kw)
 
