@@ -178,7 +178,9 @@ def check_inputs(args: argparse.Namespace) -> int:
     if args.start * MOTION_FPS >= len(poses):
         raise UsageError(f"--start {args.start}: the motion lasts {len(poses) / MOTION_FPS:.2f} s")
     if args.wav is not None:
-        frame_audio(args.wav, 1)
+        from agent.io.audio_file import check_audio_file
+
+        check_audio_file(args.wav)  # decoded once, later; a decoding problem is caught there
     return len(poses)
 
 

@@ -28,17 +28,11 @@ class AudioFileError(ValueError):
 def load_audio(path: str | Path, sample_rate_hz: int) -> np.ndarray:
     """Decode `path` to mono float32 at `sample_rate_hz`."""
     path = Path(path)
-    if not path.exists():
-        raise AudioFileError(f"{path}: no such file")
-    if path.is_dir():
-        raise AudioFileError(f"{path}: is a directory, not an audio file")
-    if path.stat().st_size == 0:
-        raise AudioFileError(f"{path}: the file is empty")
+    check_audio_file(path)
     try:
         audio, rate = sf.read(str(path), dtype="float32", always_2d=True)  # (T, C)
     except (sf.LibsndfileError, RuntimeError) as e:
-        raise AudioFileError(f"{path}: not a readable audio file ({_reason(e)}); "
-                             f"supported: {', '.join(sorted(sf.available_formats()))}") from None
+        raise _unreadable(path, e) from None
     if audio.shape[0] == 0:
         raise AudioFileError(f"{path}: contains no audio samples")
     mono = audio.mean(axis=1)  # (T,)
@@ -49,6 +43,26 @@ def load_audio(path: str | Path, sample_rate_hz: int) -> np.ndarray:
     if rate != sample_rate_hz:
         mono = soxr.resample(mono, rate, sample_rate_hz)
     return np.ascontiguousarray(mono, dtype=np.float32)
+
+
+def check_audio_file(path: str | Path) -> None:
+    """The checks that need no decoding: the file exists, is not empty, and libsndfile knows its format."""
+    path = Path(path)
+    if not path.exists():
+        raise AudioFileError(f"{path}: no such file")
+    if path.is_dir():
+        raise AudioFileError(f"{path}: is a directory, not an audio file")
+    if path.stat().st_size == 0:
+        raise AudioFileError(f"{path}: the file is empty")
+    try:
+        sf.info(str(path))
+    except (sf.LibsndfileError, RuntimeError) as e:
+        raise _unreadable(path, e) from None
+
+
+def _unreadable(path: Path, e: Exception) -> AudioFileError:
+    return AudioFileError(f"{path}: not a readable audio file ({_reason(e)}); "
+                          f"supported: {', '.join(sorted(sf.available_formats()))}")
 
 
 def warn_if_truncated_wav(path: Path) -> None:
