@@ -55,7 +55,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, help="random seed (offline runs are deterministic with it)")
     p.add_argument("--character", metavar="NAME|INDEX",
                    help="the speaker the gesture model imitates (a name from the checkpoint's speaker map, or a row)")
-    p.add_argument("--report", metavar="DIR", help="report directory (default runs/<time>/)")
+    p.add_argument("--report", metavar="DIR", help="report directory (default: a new runs/<time>-<suffix>/)")
     p.add_argument("--worker", action="store_true",
                    help="only start this host's stages (run.spawn); another host's launch.py supervises")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="YAML config (default: %(default)s)")
@@ -227,9 +227,13 @@ def main(argv=None) -> int:
         return run_worker(app, run)
     supervisor = Supervisor(app, run)
     code = supervisor.run()
-    summary = supervisor.latency.write(run_dir, supervisor.counters(),
-                                       {s: asdict(e) for s, e in supervisor.clock.estimates().items()},
-                                       supervisor.stream_timing(), live=app.run.live)
+    try:
+        summary = supervisor.latency.write(run_dir, supervisor.counters(),
+                                           {s: asdict(e) for s, e in supervisor.clock.estimates().items()},
+                                           supervisor.stream_timing(), live=app.run.live)
+    except OSError as e:
+        print(f"error: cannot write the latency report in {run_dir} ({e.strerror or e})", file=sys.stderr)
+        return code or 1
     print(format_table(summary))
     print(f"report: {run_dir}/ (latency.json, latency.png, transcript.json, <stage>.log)")
     return code

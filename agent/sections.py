@@ -87,7 +87,7 @@ class RunConfig:
 
     live: bool = True
     seed: int = 0
-    report_dir: Optional[str] = None  # default: runs/<time>/
+    report_dir: Optional[str] = None  # default: a new runs/<time>-<suffix>/
     stages: tuple[str, ...] = STAGES
     spawn: Optional[tuple[str, ...]] = None
     components: dict[str, str] = field(default_factory=dict)

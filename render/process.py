@@ -157,9 +157,12 @@ class RenderComponent:
         return outputs
 
     def flush(self) -> Sequence[Message]:
+        """End of stream: write what is left and finalise the MP4 now, so a failure to write it fails the run
+        (the stage's end of stream is only sent after this)."""
         if self.timeline is not None:
             try:
                 self.timeline.finish()
+                self.timeline.writer.close(commit=True)
             except Mp4WriteError as err:
                 self.timeline_failed = True
                 raise StageFailed(str(err)) from None
