@@ -36,7 +36,8 @@ MICRO_LISTENING = 0.45  # micro-motion while listening, relative to speaking
 MICRO_ENVELOPE_GAIN = 0.5  # micro-motion scale 1 - gain/2 .. 1 + gain/2 with the (smoothed) speech envelope
 MICRO_ENVELOPE_SMOOTH_S = 0.3
 MICRO_GATE_LOG_STD = 0.7  # micro-motion comes and goes: its size is log-normal in time, per body part ...
-MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two, bursts between them)
+MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two, bursts between them) ...
+MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40 rad per frame at 25 fps)
 MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
 NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
 POLE_OUT, POLE_DOWN = 0.15, -0.8  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
@@ -169,7 +170,7 @@ def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int,
     """Per joint, (T, 3) local rotation offsets: smooth noise of std ``params[j][0]`` (rad per axis) and cutoff
     ``params[j][1]`` (Hz), times ``scale`` (T,) and its body part's gate (log-normal, unit mean square)."""
     log_gate = MICRO_GATE_LOG_STD * smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(MICRO_PARTS))  # (T, parts)
-    gate = np.exp(log_gate - MICRO_GATE_LOG_STD**2)  # E[gate^2] = 1
+    gate = np.minimum(np.exp(log_gate - MICRO_GATE_LOG_STD**2), MICRO_GATE_MAX)  # E[gate^2] ~ 1, no wild bursts
     part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
     return {j: smooth_noise(rng, n, fps, hz, 3) * std[None] * (scale * gate[:, part_of.get(j, 0)])[:, None]
             for j, (std, hz) in sorted(params.items())}

@@ -35,6 +35,8 @@ MICRO_JOINTS = (0, 3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21)  # pelvis, s
 STD_FLOOR = 0.25  # of the real std: every joint keeps some micro-motion
 MAX_STEP = 2.0  # largest multiplicative correction per iteration
 PROBE_HZ = 1.0
+MAX_CUTOFF_HZ = 3.0  # faster noise is jitter, not motion (a joint whose planned motion is already too spread, the
+# shoulders, would otherwise buy its median speed with it)
 REAL_CLIP = Path(__file__).resolve().parents[4] / "shared" / "data" / "beat2" / "2_scott_0_1_1"
 
 
@@ -80,13 +82,14 @@ def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print)
     base_std, _, _ = synthetic_stats(wav, words, seeds, {})
     std = np.sqrt(np.maximum(real_std**2 - base_std**2, (STD_FLOOR * real_std) ** 2))  # (J, 3)
     hz = np.array([PROBE_HZ * real_med[k] / noise_median_speed(std[k], PROBE_HZ) for k in range(len(MICRO_JOINTS))])
+    hz = np.minimum(hz, MAX_CUTOFF_HZ)
     for it in range(iterations):
         params = {j: (std[k], float(hz[k])) for k, j in enumerate(MICRO_JOINTS)}
         _, got_div, got_med = synthetic_stats(wav, words, seeds, params)
         log(f"iteration {it}: diversity ratio {np.round(got_div / real_div, 2).tolist()}, "
             f"median speed ratio {np.round(got_med / real_med, 2).tolist()}")
         std = std * np.clip(real_div / got_div, 1 / MAX_STEP, MAX_STEP)[:, None]
-        hz = hz * np.clip(real_med / got_med, 1 / MAX_STEP, MAX_STEP)
+        hz = np.minimum(hz * np.clip(real_med / got_med, 1 / MAX_STEP, MAX_STEP), MAX_CUTOFF_HZ)
     return {j: (std[k], float(hz[k])) for k, j in enumerate(MICRO_JOINTS)}
 
 

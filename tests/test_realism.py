@@ -1,0 +1,96 @@
+"""The realism report (gesture.realism): its measures on motions whose answer is known, and that it tells the real
+clip from a trivial baseline."""
+
+import numpy as np
+import pytest
+import torch
+
+from gesture import metrics as M
+from gesture import realism as R
+from gesture.data.synth.face import expressions_from_activations
+from gesture.data.synth.tracks import add_bump
+from gesture.skeleton import Skeleton
+from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
+
+torch.set_num_threads(1)
+FPS = 25
+
+
+def _spinning(n_frames: int, joint: int, rad_per_s: float) -> np.ndarray:
+    poses = np.zeros((n_frames, 55, 3))
+    poses[:, joint, 2] = rad_per_s * np.arange(n_frames) / FPS
+    return poses
+
+
+def test_angular_speed_of_a_joint_turning_at_a_known_rate():
+    speeds = R.angular_speeds(_spinning(100, 18, 1.5), FPS)  # (99, 55)
+    np.testing.assert_allclose(speeds[:, 18], 1.5, rtol=1e-6)
+    assert speeds[:, 19].max() < 1e-6
+
+
+def test_group_stats_see_stillness_speed_and_spread():
+    n = 30 * FPS
+    poses = np.zeros((n, 55, 3))
+    half = n // 2
+    poses[half:, 20, 0] = 0.3 * np.sin(2 * np.pi * 1.0 * np.arange(n - half) / FPS)  # still, then 1 Hz swings
+    stats = R.group_stats(poses)
+    wrists = stats["wrists"]
+    assert wrists["still_fraction"] == pytest.approx(0.75, abs=0.03)  # the other wrist and the first half
+    assert wrists["speed_p90"] > 1.0 > R.STILL_RAD_S
+    # mean angle from the mean (rest): one wrist swings half the time with mean |0.3 sin| = 0.6 / pi; two wrists
+    assert wrists["diversity"] == pytest.approx(0.6 / np.pi / 4, rel=0.05)
+    assert stats["spine"]["speed_median"] == 0.0 and stats["spine"]["diversity"] == 0.0
+
+
+def test_strokes_are_counted_one_per_movement():
+    n = 20 * FPS
+    wrist = np.zeros((n, 3))
+    times = np.arange(1.0, 19.0, 1.5)  # 12 strokes, 1.5 s apart
+    for t in times:
+        add_bump(wrist[:, 1], FPS, t, 0.25, 0.2, 0.25, 0.15)  # up 15 cm in 0.25 s and back
+    found = R.stroke_times_s(wrist)
+    assert len(found) == 2 * len(times)  # the rise and the fall of each movement
+    assert R.stroke_times_s(wrist * 0.1).size == 0  # 1.5 cm: micro-motion, not a stroke
+
+
+def test_face_events_are_counted():
+    n = 60 * FPS
+    blink, brow, smile = np.zeros(n), np.zeros(n), np.full(n, 0.2)
+    for t in np.arange(2.0, 58.0, 4.0):  # 14 blinks
+        add_bump(blink, FPS, t, 0.08, 0.04, 0.15, 1.0)
+    for t in np.arange(3.0, 57.0, 6.0):  # 9 brow raises
+        add_bump(brow, FPS, t, 0.12, 0.3, 0.35, 0.8)
+    for t in (10.0, 30.0, 50.0):  # 3 smiles
+        add_bump(smile, FPS, t, 0.3, 1.0, 0.6, 0.6)
+    psi = expressions_from_activations({"blink": blink, "brow_raise": brow, "smile": smile})
+    stats = R.face_stats(psi)
+    assert stats == {"blinks_per_minute": 14.0, "brow_raises_per_minute": 9.0, "smiles_per_minute": 3.0}
+
+
+def test_ratios_divide_and_positions_subtract():
+    out = R.ratios({"a": {"x": 2.0, "h_m": 0.1}}, {"a": {"x": 4.0, "h_m": -0.1}})
+    assert out == {"a": {"x": 0.5, "h_m_minus_real": pytest.approx(0.2)}}
+
+
+@needs_clip
+def test_report_tells_the_real_clip_from_the_still_baseline():
+    real = R.load_clip(CLIP_NPZ)
+    skeleton = Skeleton.default()
+    motions = {"itself": real, "baseline": R.baseline_reference(real, seed=0)}
+    report = R.build_report(real, motions, M.load_speech(CLIP_WAV), M.load_mean_speed(R.MEAN_SPEED_NPY), skeleton)
+    itself, baseline = report["itself"], report["baseline"]
+    for group in R.JOINT_GROUPS:
+        for value in itself["ratios"]["groups"][group].values():
+            assert value == pytest.approx(1.0)
+    assert itself["goals"]["groups_within_0.8_1.25"] and itself["goals"]["l1div_within_15pct"]
+    assert itself["protocol"]["fgd_kinetic"] == pytest.approx(0.0, abs=1e-6)
+    assert itself["hand_height_overlap"] == pytest.approx(1.0)
+    assert not baseline["goals"]["groups_within_0.67_1.5"] and not baseline["goals"]["l1div_within_25pct"]
+    assert baseline["ratios"]["groups"]["wrists"]["diversity"] < 0.2  # a held pose has no spread
+    assert baseline["protocol"]["fgd_kinetic"] > 1.0
+
+
+def test_cli_names_a_missing_file(tmp_path, capsys):
+    code = R.main(["--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"), "--no-video"])
+    assert code == 2
+    assert "none.npz" in capsys.readouterr().err
