@@ -1,6 +1,7 @@
 """Realism report: motion generated for real speech against the real speaker's motion on that speech.
 
-    python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--no-video]
+    python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
+        [--set KEY=VALUE ...]   (passed to launch.py, e.g. other checkpoints)
 
 The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spoken by the ``playback`` backend
 (``launch.py --speak WAV --headless --seed N --report DIR``, which writes the agent's motion to DIR/motion.npz;
@@ -300,11 +301,12 @@ def baseline_reference(real: M.MotionClip, seed: int) -> M.MotionClip:
     return M.MotionClip(poses.astype(np.float32), trans.astype(np.float32), expressions.astype(np.float32), MOTION_FPS)
 
 
-def speak_clip(wav: Path, seed: int, report_dir: Path) -> Path:
-    """Run the agent on the recording with the playback backend; returns its motion.npz."""
+def speak_clip(wav: Path, seed: int, report_dir: Path, overrides: Sequence[str] = ()) -> Path:
+    """Run the agent on the recording with the playback backend (``overrides``: launch.py ``--set`` options);
+    returns its motion.npz."""
     report_dir.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, str(ROOT / "launch.py"), "--speak", str(wav), "--headless", "--seed", str(seed),
-           "--report", str(report_dir)]
+           "--report", str(report_dir)] + [arg for item in overrides for arg in ("--set", item)]
     with open(report_dir / "launch.out", "w") as log:
         subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
     return report_dir / "motion.npz"
@@ -421,6 +423,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline")
     p.add_argument("--out", help="directory for realism.json, speeds.png, side_by_side.mp4 and the agent's run")
     p.add_argument("--motion", help="reuse this motion.npz of the agent instead of running launch.py --speak")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="passed to launch.py (e.g. gesture.lm_checkpoint=runs/x/gesture_lm)")
     p.add_argument("--synthetic", help="reuse this motion npz as the synthetic reference instead of generating it")
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip, without extension (.npz and .wav)")
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
@@ -435,7 +439,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             if not path.is_file():
                 raise DataError(path, "not found")
         out.mkdir(parents=True, exist_ok=True)
-        generated_npz = Path(args.motion) if args.motion else speak_clip(wav, args.seed, out / "agent")
+        generated_npz = Path(args.motion) if args.motion else speak_clip(wav, args.seed, out / "agent", args.set)
         skeleton = Skeleton.default()
         real, generated = load_clip(real_npz), load_clip(generated_npz)
         n = min(len(real.poses), len(generated.poses))
