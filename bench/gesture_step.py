@@ -13,7 +13,8 @@ the work itself; the wall time adds waiting for a core), for the whole step and 
 sampled), and the codec-only CPU median.
 
 Every result is also given relative to baselines of the same run (`bench.machine`): the time to read the step's
-stored weights once at the measured single-core bandwidth (`vs_read_floor`), a fixed matmul workload timed between
+stored weights once at the measured single-core bandwidth (`vs_read_floor`, and `cpu_vs_read_floor` from the
+thread's CPU time, which waiting for a core on a busy machine does not inflate), a fixed matmul workload timed between
 the steps (`vs_baseline_matmul`), and the naive path (`speedup_vs_naive`). The report names the CPU and its flags.
 """
 
@@ -121,6 +122,7 @@ def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -
         weights = weights_of(gen, bandwidth_gbps)
         result[key] = {**whole[key], **parts[key], **weights,
                        "vs_read_floor": round(whole[key]["median_ms"] / weights["read_floor_ms"], 2),
+                       "cpu_vs_read_floor": round(whole[key]["cpu_median_ms"] / weights["read_floor_ms"], 2),
                        "vs_baseline_matmul": round(whole[key]["median_ms"] / baseline.median_ms(), 3)}
         gen.close()
     gen = GestureGenerator(lm, codecs, cfg_scale=CFG_SCALE, engine="naive")

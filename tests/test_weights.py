@@ -63,10 +63,11 @@ def test_int8_quantization_rounds_each_row_to_its_own_scale():
     assert bool(((quantized.float() * scale[:, None] - matrix).abs() <= scale[:, None] / 2 + 1e-7).all())
 
 
-def test_int8_rows_the_fast_kernel_cannot_take_use_the_portable_one():
-    assert kernel_for("int8", 24) == "int8-in-bf16"  # 24 inputs: not a multiple of 16
+def test_int8_rows_the_int8_kernel_cannot_take_are_stored_as_bfloat16():
+    assert kernel_for("int8", 24) == kernel_for("bfloat16", 24)  # 24 inputs: not a multiple of 16
     matrix, x = _matrix(in_features=24)
     weight = step_weight(matrix, "int8")
+    assert weight.out_dtype == torch.bfloat16
     torch.testing.assert_close(weight.apply(x).float(), x @ matrix.T, atol=0.1, rtol=0.03)
 
 

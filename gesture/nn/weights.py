@@ -9,10 +9,11 @@ bfloat16). Callers add the product to a float32 residual or bias, which promotes
 | float32  | -                                                        | F.linear in float32                         |
 | float16  | -                                                        | F.linear in float16                         |
 | bfloat16 | oneDNN-prepacked bf16 (avx512bw+vl+dq or avx_ne_convert) | F.linear in bfloat16                        |
-| int8     | aten._weight_int8pack_mm (rows of a multiple of 16)      | F.linear over the int8 values held in bf16  |
+| int8     | aten._weight_int8pack_mm                                 | F.linear over the int8 values held in bf16  |
 
 int8 is symmetric per output row (scale = max |row| / 127) with bfloat16 activations; both of its kernels use the
-same quantized values, so they agree to bfloat16 rounding. A fast kernel is used only after a probe has run it
+same quantized values, so they agree to bfloat16 rounding. Matrices whose rows are not a multiple of 16 inputs
+(which the int8 kernel gets wrong) are stored in the bfloat16 form instead, on every machine. A fast kernel is used only after a probe has run it
 once in this process on a small matrix and found it agrees with float32 (the probe's answer is cached).
 `ECAS_PORTABLE_KERNELS=1` in the environment, or `portable_kernels(True)`, forces the portable kernels, so a
 machine that has the fast ones also runs what every other machine runs.
@@ -174,10 +175,12 @@ def kernel_for(form: str, in_features: int) -> str:
     """The kernel `step_weight` uses for a matrix of `in_features` columns in `form` on this CPU, now."""
     check_form(form)
     fast = not portable_forced() and fast_kernel_runs(form)
+    if form == "int8" and in_features % INT8_IN_MULTIPLE:
+        return kernel_for("bfloat16", in_features)
     if form == "bfloat16":
         return "onednn-bf16" if fast else "dense-bfloat16"
     if form == "int8":
-        return "int8pack" if fast and in_features % INT8_IN_MULTIPLE == 0 else "int8-in-bf16"
+        return "int8pack" if fast else "int8-in-bf16"
     return f"dense-{form}"
 
 
@@ -191,7 +194,7 @@ def step_weight(matrix: torch.Tensor, form: str, batch: int = 1) -> StepWeight:
         return Int8PackWeight(matrix)
     if kernel == "int8-in-bf16":
         return Int8DequantWeight(matrix)
-    return DenseWeight(matrix, getattr(torch, form))
+    return DenseWeight(matrix, getattr(torch, kernel.removeprefix("dense-")))
 
 
 def check_form(form: str, option: str = "dtype") -> str:
