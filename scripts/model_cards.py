@@ -39,6 +39,14 @@ def data_line(mix: Path) -> str:
             "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split).")
 
 
+TERMS = f"""## Terms
+- The synthetic sessions are made by this project's generator (`gesture/data/synth`, MIT like the rest of the code;
+  its voices are espeak-ng's). The generator's calibration (`gesture/data/synth/calibration.json`: rest posture,
+  hand shape, gesture space and the micro-motion fitted by `python -m gesture.data.synth.fit`) is measured on the
+  real BEAT2 clip `2_scott_0_1_1`.
+- The real clip `2_scott_0_1_1` (motion and speech) is BEAT2 data (Liu et al., EMAGE, CVPR 2024) under BEAT2's
+  licence: research use with attribution. Because it is part of the training data, these weights carry BEAT2's
+  terms too; the project's MIT licence covers the code only."""
 codec_data = data_line(W / 'codec_data') + " Cut into 10 s chunks by `python -m gesture.data.build`."
 lm_data = data_line(W / 'data')
 codec = f"""# The default gesture codecs (upper+hands, lower, face)
@@ -77,6 +85,8 @@ test sessions:
 The whole-body codec MPJPE (all three regions reconstructed together) on held-out synthetic sessions is in the
 quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<region>/loss_curve.png`.
 
+{TERMS}
+
 ## Reproduce
 `bash scripts/train_default.sh` (stage `codecs`: `python -m gesture.train_codec --config
 configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>`,
@@ -112,14 +122,17 @@ the local recogniser), voice activity per step.
 ## Config
 `configs/lm/default_small.yaml`: d_model {meta['lm']['d_model']}, {meta['lm']['temporal_layers']} temporal layers,
 {meta['lm']['depth_layers']} depth layer(s), gated FFN {meta['lm']['ffn_hidden']}, VA head; AdamW lr
-{LM['lr']:g}, batch {LM['batch_size']} windows of {LM['window_steps']} steps, {LM['epochs']} epochs of
+{LM['lr']:g}, batch {LM['batch_size']} windows of {LM['window_steps']} steps, {last['epoch']} epochs (config: {LM['epochs']}) of
 {LM['steps_per_epoch']} steps, StepLR ×{LM['lr_gamma']} every {LM['lr_step_epochs']} epochs, CFG condition dropout,
 pad input dropout, dropout {meta['lm']['dropout']:g}, InfoNCE weight {LM['infonce_weight']:g}, VA loss weight {LM['va_weight']}.
 
 ## Metrics
 Training losses, epoch 1: {fmt(first)}; epoch {last['epoch']}: {fmt(last)} (`losses.json`, `loss_curve.png`).
 Generation quality (BeatAlign, L1div, voice-activity accuracy, listening/speaking energy, BEAT2 clip, no-collapse)
-is measured by `python -m gesture.evaluate --suite default --json`; see the table below and the README.
+is measured by `python -m gesture.evaluate --suite default --json`, realism against the real clip by
+`python -m gesture.realism --json`; see the README.
+
+{TERMS}
 
 ## Reproduce
 `bash scripts/train_default.sh` (stages `tokenize`: `python -m gesture.data.tokenize --root $WORK/data

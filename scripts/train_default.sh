@@ -4,7 +4,7 @@
 # and checkpoints/gesture_lm. The decoder stage freezes the encoders and quantizers, so it never changes the LM tokens.
 #
 #   bash scripts/train_default.sh                 # the shipped run (about 1.5 hours of wall time on 2 cores)
-#   SESSIONS=2 CODEC_SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
+#   SESSIONS=2 CODEC_SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 FACE_CODEC_STEPS=20 DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
 #
 # Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists
 # (SYNTHETIC=data/synthetic reuses the dataset of `python -m gesture.data.synthetic --out data/synthetic`).
@@ -22,7 +22,7 @@ SEED=${SEED:-0}
 BEAT2_CLIP=${BEAT2_CLIP:-../shared/data/beat2/2_scott_0_1_1}
 CODEC_CONFIG=${CODEC_CONFIG:-configs/codec/default_small.yaml}
 LM_CONFIG=${LM_CONFIG:-configs/lm/default_small.yaml}
-CODEC_STEPS=${CODEC_STEPS:-}  # all three regions (default: the config's, and FACE_CODEC_STEPS for the face)
+CODEC_STEPS=${CODEC_STEPS:-}  # upper and lower (default: the config's)
 FACE_CODEC_STEPS=${FACE_CODEC_STEPS:-8000}  # the face needs twice the config's steps to carry blinks as well as the jaw
 DECODER_CONFIG=${DECODER_CONFIG:-configs/codec/default_small_finetune.yaml}
 DECODER_REGIONS=${DECODER_REGIONS:-upper lower}  # the two that move the joints BeatAlign reads
@@ -64,7 +64,7 @@ train_codecs() {  # the three regions in parallel, each niced and single-threade
   local region steps pids=()
   for region in upper lower face; do
     steps=$CODEC_STEPS
-    if [ -z "$steps" ] && [ "$region" = face ]; then steps=$FACE_CODEC_STEPS; fi
+    if [ "$region" = face ]; then steps=$FACE_CODEC_STEPS; fi
     "${NICE[@]}" "$PY" -m gesture.train_codec --config "$CODEC_CONFIG" --region "$region" --data "$WORK/cache" \
       --out "$WORK/codecs/$region" ${steps:+--steps "$steps"} > "$WORK/codec_$region.json" \
       2> "$WORK/codec_$region.log" &
