@@ -170,6 +170,25 @@ def check_weight_form(app: AppConfig) -> None:
         raise ConfigError(str(e)) from None
 
 
+def with_free_tcp_ports(app: AppConfig) -> AppConfig:
+    """`bus.base_port: 0`: every endpoint this run binds takes a port that is free now (an explicit
+    `bus.endpoints.<name>` is kept), so two tcp runs on one host never collide."""
+    if app.bus.transport != "tcp" or app.bus.base_port != 0:
+        return app
+    names = [n for n in (*app.run.stages, SUPERVISOR, "dashboard") if n not in app.bus.endpoints]
+    probes = [socket.socket(socket.AF_INET6 if ":" in app.bus.host else socket.AF_INET) for _ in names]
+    try:
+        for probe in probes:
+            probe.bind((app.bus.host, 0))
+        endpoints = {name: f"tcp://{app.bus.host}:{probe.getsockname()[1]}" for name, probe in zip(names, probes)}
+    except OSError as e:
+        raise ConfigError(f"bus.host: cannot listen on {app.bus.host} ({e.strerror or e})") from None
+    finally:
+        for probe in probes:
+            probe.close()
+    return replace(app, bus=replace(app.bus, endpoints={**endpoints, **app.bus.endpoints}))
+
+
 def check_ports(app: AppConfig, worker: bool) -> None:
     """Every tcp port this host will listen on must be free: one line naming the port and the option."""
     bindings = [s for s in app.run.local_stages]
@@ -216,6 +235,7 @@ def main(argv=None) -> int:
         check_checkpoints(app)
         check_weight_form(app)
         check_mp4_target(app)
+        app = with_free_tcp_ports(app)
         check_ports(app, args.worker)
     except (ConfigError, AudioFileError, NoAudioDevice) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -20,7 +20,8 @@ STAGES = ("io", "dialogue", "gesture", "render")
 class BusConfig:
     """Where each process publishes, and how the bus behaves.
 
-    `transport: ipc` binds `ipc://<private run dir>/<stage>.sock`; `tcp` binds `tcp://<host>:<base_port + i>`.
+    `transport: ipc` binds `ipc://<private run dir>/<stage>.sock`; `tcp` binds `tcp://<host>:<base_port + i>`;
+    `base_port: 0` gives every endpoint a free port (one host runs every stage), so tcp runs never collide.
     `endpoints` pins a stage to an explicit address (`tcp://gpu-box:5601`) to split the loop across hosts.
     A stage fails the run when its handler fails on `max_handler_failures` messages in a row, or when it
     publishes nothing for `stall_timeout_s` while its upstream stage is ahead of it (a heartbeat alone does
@@ -42,7 +43,8 @@ class BusConfig:
 
     def __post_init__(self):
         if not 0 <= self.base_port <= 65535 - len(STAGES) - 2:
-            raise ConfigError(f"bus.base_port: must be a tcp port (0-{65535 - len(STAGES) - 2}), got {self.base_port}")
+            raise ConfigError(f"bus.base_port: must be a tcp port (1-{65535 - len(STAGES) - 2}), or 0 for free "
+                              f"ports; got {self.base_port}")
         if self.stall_timeout_s <= 0:
             raise ConfigError(f"bus.stall_timeout_s: must be > 0, got {self.stall_timeout_s}")
         for name in ("live_queue_steps", "credit_window_steps", "max_handler_failures"):
@@ -140,6 +142,9 @@ class AppConfig:
     def __post_init__(self):
         if self.run.spawn is not None and self.bus.transport == "ipc" and not self.bus.endpoints:
             raise ConfigError("run.spawn: stages on other hosts need bus.transport: tcp (or tcp bus.endpoints)")
+        if self.run.spawn is not None and self.bus.transport == "tcp" and self.bus.base_port == 0:
+            raise ConfigError("bus.base_port: 0 (free ports) needs every stage on this host; with run.spawn the "
+                              "hosts must agree on ports: give a base port")
 
 
 def load_app_config(path: Path | str, overrides: Sequence[str] = ()) -> AppConfig:

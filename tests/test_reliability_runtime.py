@@ -21,6 +21,7 @@ from typing import Sequence
 import numpy as np
 import pytest
 import soundfile as sf
+import yaml
 
 from agent.messages import DialogueStep, GestureStep, Message
 from agent.sections import RunConfig
@@ -203,3 +204,22 @@ def test_an_offline_source_waiting_for_credit_does_not_spin(tmp_path):
 
 def _read(path: Path) -> str:
     return path.read_text(errors="replace") if path.exists() else ""
+
+
+# ---- tcp ----------------------------------------------------------------------------------------------------------
+def bus_ports(report: Path) -> set[int]:
+    """The tcp ports a run bound, from the config it wrote."""
+    endpoints = yaml.safe_load((report / "config.yaml").read_text())["bus"]["endpoints"]
+    assert set(endpoints) >= {"io", "dialogue", "gesture", "render", "supervisor"}
+    return {int(address.rsplit(":", 1)[1]) for address in endpoints.values()}
+
+
+def test_two_tcp_runs_on_one_host_take_free_ports_and_both_finish(tmp_path):
+    wav = recording(tmp_path / "talk.wav", 1.0)
+    tcp = ["--replay", str(wav), "--fast", "--set", "bus.transport=tcp", "--set", "bus.base_port=0"]
+    first, second = launch(tcp, tmp_path / "first"), launch(tcp, tmp_path / "second")
+    for proc in (first, second):
+        code, output = finish(proc)
+        assert code == 0, output
+        assert leftovers(proc.pid) == [] and ipc_dirs(proc.pid) == []
+    assert not bus_ports(tmp_path / "first") & bus_ports(tmp_path / "second")
