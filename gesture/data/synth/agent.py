@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.ndimage import gaussian_filter1d
+from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 
 from gesture.data.synth.calibration import load_calibration
 from gesture.data.synth.config import SynthConfig
@@ -38,6 +38,8 @@ MICRO_ENVELOPE_SMOOTH_S = 0.3
 MICRO_GATE_LOG_STD = 0.7  # micro-motion comes and goes: its size is log-normal in time, per body part ...
 MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two, bursts between them) ...
 MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40 rad per frame at 25 fps)
+MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
+ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
 MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
 NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
 POLE_OUT, POLE_DOWN = 0.15, -0.8  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
@@ -165,6 +167,16 @@ def micro_motion_scale(speaking: np.ndarray, env: np.ndarray, fps: float) -> np.
     return turn * voice
 
 
+def forearm_forward_scale(planned: np.ndarray, offset: np.ndarray, sign: float) -> np.ndarray:
+    """(T,) the share of an elbow's micro-motion ``offset`` (T, 3) that keeps its forearm pointing forwards
+    (``MIN_FOREARM_FORWARD``; the elbow never hyperextends), smoothed so that it never jumps."""
+    shares = np.linspace(1.0, 0.0, 11)
+    forward = np.stack([(planned @ _aa(k * offset))[:, 2, 0] * sign for k in shares], 1)  # (T, 11)
+    ok = forward >= MIN_FOREARM_FORWARD
+    share = np.where(ok.any(1), shares[np.argmax(ok, axis=1)], 0.0)
+    return gaussian_filter1d(minimum_filter1d(share, 9), 1.5)
+
+
 def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int, tuple[np.ndarray, float]],
                  scale: np.ndarray) -> dict[int, np.ndarray]:
     """Per joint, (T, 3) local rotation offsets: smooth noise of std ``params[j][0]`` (rad per axis) and cutoff
@@ -265,7 +277,9 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
     solver = BodySolver(skeleton)
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
     for j, offset in offsets.items():
-        local[:, j] = local[:, j] @ _aa(offset)
+        sign = ELBOW_SIDES.get(j)
+        scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]
+        local[:, j] = local[:, j] @ _aa(scale * offset)
     poses = matrix_to_axis_angle(local)  # (T, 55, 3)
     poses[:, 22] = solver.base[22] + np.stack([JAW_OPEN_RAD * env, 0 * env, 0 * env], -1)
     poses[:, 23:25] = 0.0
