@@ -401,7 +401,7 @@ def _json_safe(value):
 
 
 def format_table(report: dict) -> str:
-    names = [k for k in ("generated", "synthetic_gt", "baseline") if k in report]
+    names = [k for k in report if k not in ("real", "meta")]
     lines = [f"{'ratio to real':30s}" + "".join(f"{n:>14s}" for n in names)]
     for group in JOINT_GROUPS:
         for key in report["real"]["groups"][group]:
