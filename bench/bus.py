@@ -22,6 +22,7 @@ import zmq
 from agent.bus import Publisher, Subscriber
 from agent.latency import percentiles
 from agent.messages import Command, Control, GestureStep, RenderFrame
+from bench.machine import machine_report
 
 FRAME_SIDE = 512
 
@@ -111,7 +112,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     results = run(args.count)
     if args.json:
-        print(json.dumps(results, indent=2))
+        print(json.dumps({"machine": machine_report(), **results}, indent=2))
         return
     for name, r in results.items():
         lat = r["latency_ms"]

@@ -24,6 +24,7 @@ from scipy.signal import resample_poly  # noqa: E402
 from agent.config import build_dataclass  # noqa: E402
 from agent.timing import SAMPLE_RATE_HZ, STEP_MS, STEP_SAMPLES  # noqa: E402
 from dialogue.config import DialogueConfig  # noqa: E402
+from bench.machine import machine_report  # noqa: E402
 from dialogue.local_backend import LocalBackend  # noqa: E402
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -93,7 +94,7 @@ def run(beat2_s: float, pause_s: float) -> dict:
             base_ms.append(baseline_ms(rng))
     user_turns = [t for t in backend.transcript.turns if t.speaker == "user"]
     return {
-        "backend": "local", "threads": torch.get_num_threads(), "steps": len(step_ms), "step_ms_budget": STEP_MS,
+        "machine": machine_report(), "backend": "local", "threads": torch.get_num_threads(), "steps": len(step_ms), "step_ms_budget": STEP_MS,
         "audio_s": round(len(pcm) / SAMPLE_RATE_HZ, 2),
         "step_cpu_ms": percentiles(step_ms), "goal_p99_ms": GOAL_P99_MS,
         "meets_goal": bool(np.percentile(step_ms, 99) <= GOAL_P99_MS),

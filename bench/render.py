@@ -149,7 +149,9 @@ def main(argv=None) -> int:
     if args.worker == "mp4":
         print(json.dumps(mp4_throughput(None if args.mp4_seconds < 0 else args.mp4_seconds)))
         return 0
-    result = {"load_avg_before": os.getloadavg()[0], "cpus": os.cpu_count()}
+    from bench.machine import machine_report  # here, not at the top: the render workers need no torch
+
+    result = {"machine": machine_report(), "load_avg_before": os.getloadavg()[0], "cpus": os.cpu_count()}
     result["platforms"] = {pf: _run_worker(["--worker", pf, "--frames", str(args.frames)]) for pf in PLATFORMS}
     result["stages_512_osmesa"] = _run_worker(["--worker", "stages"])
     if args.mp4_seconds:
