@@ -9,7 +9,9 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 way, so the report is seen to discriminate:
 
 - ``synthetic_gt``: the synthetic generator (gesture.data.synth) driven by the clip's own audio and word timings;
-- ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``).
+- ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
+- ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``): the ceiling of what
+  an agent speaking through those codecs can reach.
 
 Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - per joint group (``JOINT_GROUPS``): angular speed of the local rotations (rad/s; the angle of R_t^T R_t+1 times
@@ -273,6 +275,20 @@ def synthetic_reference(wav: Path, n_frames: int, seed: int, words=None) -> M.Mo
     return cut(canonical(M.MotionClip(motion.poses, motion.trans, motion.expressions, MOTION_FPS)), n_frames)
 
 
+def through_codecs(clip: M.MotionClip, codec_dir: Path) -> M.MotionClip:
+    """``clip`` encoded and decoded by the codecs in ``codec_dir``: the most of it that the agent's tokens can carry."""
+    from gesture.codec.evaluation import reconstruct
+    from gesture.lm.codecs import REGIONS, load_codecs
+    from gesture.regions import features_to_motion, motion_to_features
+
+    codecs = load_codecs(codec_dir)
+    features = motion_to_features(clip.poses, clip.trans, clip.expressions, MOTION_FPS)  # region -> (T, F)
+    with torch.no_grad():
+        recon = {r: reconstruct(codecs[r], torch.from_numpy(features[r])).numpy() for r in REGIONS}
+    poses, trans, expressions = features_to_motion(recon["upper"], recon["lower"], recon["face"])
+    return canonical(M.MotionClip(poses, trans, expressions, MOTION_FPS))
+
+
 def clip_words(wav: Path, cache: Path) -> list:
     """The recording's recognised words (gesture.data.synth.recording), kept in ``cache`` (JSON) for re-runs."""
     from gesture.data.synth.recording import TimedWord, recognised_words
@@ -426,6 +442,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="passed to launch.py (e.g. gesture.lm_checkpoint=runs/x/gesture_lm)")
     p.add_argument("--synthetic", help="reuse this motion npz as the synthetic reference instead of generating it")
+    p.add_argument("--codecs", default=str(ROOT / "checkpoints" / "codecs"),
+                   help="the agent's codecs, for the real clip's reconstruction (the ceiling)")
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip, without extension (.npz and .wav)")
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
@@ -447,10 +465,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         synthetic = (cut(load_clip(args.synthetic), n) if args.synthetic
                      else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json")))
         motions = {"generated": cut(generated, n), "synthetic_gt": synthetic,
-                   "baseline": baseline_reference(real, args.seed)}
+                   "baseline": baseline_reference(real, args.seed),
+                   "real_through_codecs": cut(through_codecs(real, Path(args.codecs)), n)}
         report = build_report(real, motions, M.load_speech(wav),
                               M.load_mean_speed(MEAN_SPEED_NPY), skeleton)
-    except (DataError, ValueError, subprocess.CalledProcessError) as err:
+    except (DataError, ValueError, FileNotFoundError, subprocess.CalledProcessError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     report["meta"] = {"clip": real_npz.stem, "seconds": n / MOTION_FPS, "seed": args.seed,

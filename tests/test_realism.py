@@ -94,3 +94,12 @@ def test_cli_names_a_missing_file(tmp_path, capsys):
     code = R.main(["--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"), "--no-video"])
     assert code == 2
     assert "none.npz" in capsys.readouterr().err
+
+
+@needs_clip
+def test_the_real_clip_through_the_shipped_codecs_keeps_its_length_and_loses_detail():
+    real = R.load_clip(CLIP_NPZ)
+    recon = R.through_codecs(real, R.ROOT / "checkpoints" / "codecs")
+    assert abs(len(recon.poses) - len(real.poses)) <= 2 and np.isfinite(recon.poses).all()
+    before, after = R.group_stats(R.inner(real.poses)), R.group_stats(R.inner(recon.poses))
+    assert 0.0 < after["wrists"]["diversity"] < before["wrists"]["diversity"]  # the codec's ceiling is below real
