@@ -418,19 +418,19 @@ def _json_safe(value):
 
 def format_table(report: dict) -> str:
     names = [k for k in report if k not in ("real", "meta")]
-    lines = [f"{'ratio to real':30s}" + "".join(f"{n:>14s}" for n in names)]
+    lines = [f"{'ratio to real':30s}" + "".join(f"{n:>20s}" for n in names)]
     for group in JOINT_GROUPS:
         for key in report["real"]["groups"][group]:
             row = [report[n]["ratios"]["groups"][group][key] for n in names]
-            lines.append(f"{group + ' ' + key:30s}" + "".join(f"{v:14.2f}" for v in row))
+            lines.append(f"{group + ' ' + key:30s}" + "".join(f"{v:20.2f}" for v in row))
     for section in ("hands", "face"):
         for key in report[names[0]]["ratios"][section]:
             row = [report[n]["ratios"][section][key] for n in names]
-            lines.append(f"{key:30s}" + "".join("          none" if v is None else f"{v:14.2f}" for v in row))
-    lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:14.2f}" for n in names))
-    lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:14.2f}" for n in names))
-    lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:14.3f}" for n in names))
-    lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:14.3f}" for n in names))
+            lines.append(f"{key:30s}" + "".join(f"{'none':>20s}" if v is None else f"{v:20.2f}" for v in row))
+    lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:20.2f}" for n in names))
+    lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:20.2f}" for n in names))
+    lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:20.3f}" for n in names))
+    lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:20.3f}" for n in names))
     return "\n".join(lines)
 
 
