@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from scipy.signal import argrelextrema, get_window
 
+from gesture.data.audio import read_audio
 from gesture.data.errors import DataError
 from gesture.regions import JAW_JOINT, MOTION_FPS
 from gesture.rotation import axis_angle_to_rot6d, resample_motion, rot6d_to_axis_angle
@@ -336,20 +337,11 @@ class SpeechAudio:
 
 def load_speech(path: Path | str) -> SpeechAudio:
     """A speech file as librosa.load reads it (float32, channels averaged), before any resampling."""
-    import soundfile as sf
-
     path = Path(path)
-    if not path.is_file():
-        raise DataError(path, "audio file not found")
-    try:
-        pcm, rate = sf.read(str(path), dtype="float32", always_2d=True)  # (N, C)
-    except (RuntimeError, sf.LibsndfileError) as err:
-        raise DataError(path, f"cannot decode audio ({err})") from err
-    if pcm.shape[0] == 0:
-        raise DataError(path, "audio file has no samples")
+    pcm, rate = read_audio(path)  # (N, C)
     if not np.isfinite(pcm).all():
         raise DataError(path, "audio contains NaN or inf samples")
-    return SpeechAudio(pcm.mean(axis=1) if pcm.shape[1] > 1 else pcm[:, 0], int(rate))
+    return SpeechAudio(pcm.mean(axis=1) if pcm.shape[1] > 1 else pcm[:, 0], rate)
 
 
 def resample_like_librosa(y: np.ndarray, orig_hz: int, target_hz: int) -> np.ndarray:

@@ -20,8 +20,8 @@ def resample_audio(pcm: np.ndarray, src_hz: int, dst_hz: int) -> np.ndarray:
     return resample_poly(pcm, dst_hz // g, src_hz // g).astype(np.float32)
 
 
-def load_audio(path: Path | str, sample_rate_hz: int) -> np.ndarray:
-    """(N,) float32 mono in [-1, 1] at ``sample_rate_hz``."""
+def read_audio(path: Path | str) -> tuple[np.ndarray, int]:
+    """(N, C) float32 samples of an audio file as stored, and its rate; DataError if missing, undecodable or empty."""
     path = Path(path)
     if not path.is_file():
         raise DataError(path, "audio file not found")
@@ -31,4 +31,10 @@ def load_audio(path: Path | str, sample_rate_hz: int) -> np.ndarray:
         raise DataError(path, f"cannot decode audio ({err})") from err
     if pcm.shape[0] == 0:
         raise DataError(path, "audio file has no samples")
+    return pcm, int(rate)
+
+
+def load_audio(path: Path | str, sample_rate_hz: int) -> np.ndarray:
+    """(N,) float32 mono in [-1, 1] at ``sample_rate_hz``."""
+    pcm, rate = read_audio(path)
     return resample_audio(pcm.mean(axis=1), rate, sample_rate_hz)
