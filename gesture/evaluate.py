@@ -1,6 +1,7 @@
 """Evaluate a predicted motion against ground truth:
 ``python -m gesture.evaluate --motion pred.npz --gt gt.npz --wav speech.wav --json``;
-the shipped default agent's quality report: ``python -m gesture.evaluate --suite default --json`` (gesture.suite).
+the shipped default agent's quality report: ``python -m gesture.evaluate --suite default --json`` (gesture.suite),
+and its realism against a real speaker: ``python -m gesture.evaluate --suite real --json`` (gesture.realism).
 
 Motion files: BEAT2-style npz (poses (T, 165) or (T, 55, 3), trans, expressions; rate from
 ``mocap_frame_rate`` or ``fps``, default 25). The protocol is described in gesture.metrics.
@@ -79,8 +80,13 @@ def _encoders(args) -> list:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if "--suite" in argv:  # the default agent's quality report (gesture.suite)
-        from gesture.suite import main as suite_main
+    if "--suite" in argv:
+        at = argv.index("--suite")
+        if argv[at + 1:at + 2] == ["real"]:  # the agent against a real speaker (gesture.realism)
+            from gesture.realism import main as realism_main
+
+            return realism_main(argv[:at] + argv[at + 2:])
+        from gesture.suite import main as suite_main  # the default agent's quality report (gesture.suite)
 
         return suite_main(argv)
     parser = argparse.ArgumentParser(description="Gesture metrics of a predicted motion against ground truth.")

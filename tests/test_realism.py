@@ -96,6 +96,15 @@ def test_cli_names_a_missing_file(tmp_path, capsys):
     assert "none.npz" in capsys.readouterr().err
 
 
+def test_evaluate_suite_real_is_the_realism_report(tmp_path, capsys):
+    from gesture.evaluate import main as evaluate_main
+
+    code = evaluate_main(["--suite", "real", "--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"),
+                          "--no-video"])
+    assert code == 2
+    assert "none.npz" in capsys.readouterr().err
+
+
 @needs_clip
 def test_the_real_clip_through_the_shipped_codecs_keeps_its_length_and_loses_detail():
     real = R.load_clip(CLIP_NPZ)
