@@ -41,7 +41,7 @@ from gesture.data.audio import read_audio
 from gesture.data.errors import DataError
 from gesture.regions import JAW_JOINT, MOTION_FPS
 from gesture.rotation import axis_angle_to_rot6d, resample_motion, rot6d_to_axis_angle
-from gesture.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, Skeleton, forward_kinematics
+from gesture.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS, Skeleton, forward_kinematics, read_smplx_file
 
 METRIC_FPS = 30
 TRIM_FRAMES = 60  # at 30 fps, each end: only where motion beats are looked for
@@ -154,7 +154,7 @@ class SmplxBody:
     """
 
     def __init__(self, path: Path | str, num_shape_components: Optional[int] = None):
-        model = _load_body_file(Path(path))
+        model = read_smplx_file(Path(path))
         self.path = Path(path)
         self.v_template = _body_array(model, "v_template", self.path).astype(np.float32)  # (V, 3)
         shapedirs = _body_array(model, "shapedirs", self.path).astype(np.float32)
@@ -194,21 +194,6 @@ class SmplxBody:
 
     def skeleton(self, betas: Optional[np.ndarray]) -> Skeleton:
         return Skeleton(JOINT_NAMES, self.parents, self.rest_joints(betas))
-
-
-def _load_body_file(path: Path) -> dict:
-    import pickle
-
-    if not path.is_file():
-        raise DataError(path, "SMPL-X model file not found")
-    try:
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=True) as data:
-                return {k: data[k] for k in data.files}
-        with path.open("rb") as f:
-            return dict(pickle.load(f, encoding="latin1"))
-    except (OSError, ValueError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile) as err:
-        raise DataError(path, f"cannot read SMPL-X model ({err})") from err
 
 
 def _body_array(model: dict, key: str, path: Path) -> np.ndarray:

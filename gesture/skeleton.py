@@ -17,6 +17,7 @@ The skinning transform of joint j is ``G_j @ [I | -rest_j]`` (see ``skinning_tra
 from __future__ import annotations
 
 import pickle
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Union
@@ -24,6 +25,7 @@ from typing import Optional, Union
 import numpy as np
 import torch
 
+from gesture.data.errors import DataError
 from gesture.rotation import axis_angle_to_matrix
 
 NUM_JOINTS = 55
@@ -98,8 +100,8 @@ def _default_rest_joints_m() -> np.ndarray:
     return np.stack([rest[name] for name in JOINT_NAMES]).astype(np.float32)  # (55, 3)
 
 
-class SkeletonError(ValueError):
-    """A skeleton or SMPL-X model file is missing or malformed."""
+class SkeletonError(DataError):
+    """A skeleton or SMPL-X model file is missing or malformed (`path` names the file, or "skeleton")."""
 
 
 @dataclass(frozen=True)
@@ -114,10 +116,10 @@ class Skeleton:
         n = len(self.names)
         if len(self.parents) != n or self.rest_joints.shape != (n, 3):
             raise SkeletonError(
-                f"skeleton: {n} names, {len(self.parents)} parents and rest_joints {self.rest_joints.shape} disagree"
+                "skeleton", f"{n} names, {len(self.parents)} parents and rest_joints {self.rest_joints.shape} disagree"
             )
         if any(p >= j for j, p in enumerate(self.parents)):
-            raise SkeletonError("skeleton: every parent must come before its child")
+            raise SkeletonError("skeleton", "every parent must come before its child")
 
     @property
     def num_joints(self) -> int:
@@ -131,7 +133,7 @@ class Skeleton:
     @staticmethod
     def from_smplx_model(path: Union[str, Path], betas: Optional[np.ndarray] = None) -> "Skeleton":
         """Rest joints of a real SMPL-X model file (.npz or .pkl) with optional shape ``betas``."""
-        model = _load_model_file(Path(path))
+        model = read_smplx_file(Path(path))
         v = _model_array(model, "v_template", path)  # (V, 3)
         if betas is not None and np.size(betas):
             shapedirs = _model_array(model, "shapedirs", path)  # (V, 3, N)
@@ -140,14 +142,12 @@ class Skeleton:
             v = v + shapedirs[..., :n] @ betas[:n]
         regressor = model.get("J_regressor")
         if regressor is None:
-            raise SkeletonError(f"{path}: SMPL-X model has no 'J_regressor'")
+            raise SkeletonError(path, "SMPL-X model has no 'J_regressor'")
         if hasattr(regressor, "toarray"):  # scipy sparse in the .pkl release
             regressor = regressor.toarray()
         regressor = np.asarray(regressor, dtype=np.float64)
         if regressor.shape != (NUM_JOINTS, v.shape[0]):
-            raise SkeletonError(
-                f"{path}: 'J_regressor' has shape {regressor.shape}, expected ({NUM_JOINTS}, {v.shape[0]})"
-            )
+            raise SkeletonError(path, f"'J_regressor' has shape {regressor.shape}, expected ({NUM_JOINTS}, {v.shape[0]})")
         parents = PARENTS
         if "kintree_table" in model:
             table = np.asarray(model["kintree_table"]).astype(np.int64)
@@ -158,22 +158,23 @@ class Skeleton:
         return self.names.index(name)
 
 
-def _load_model_file(path: Path) -> dict:
+def read_smplx_file(path: Path) -> dict:
+    """The arrays of an SMPL-X-format model file (.npz, or the .pkl release); SkeletonError if unreadable."""
     if not path.is_file():
-        raise SkeletonError(f"{path}: SMPL-X model file not found")
+        raise SkeletonError(path, "SMPL-X model file not found")
     try:
         if path.suffix == ".npz":
             with np.load(path, allow_pickle=True) as data:
                 return {k: data[k] for k in data.files}
         with path.open("rb") as f:
             return dict(pickle.load(f, encoding="latin1"))
-    except (OSError, ValueError, pickle.UnpicklingError, EOFError) as err:
-        raise SkeletonError(f"{path}: cannot read SMPL-X model ({err})") from err
+    except (OSError, ValueError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile) as err:
+        raise SkeletonError(path, f"cannot read SMPL-X model ({err})") from err
 
 
 def _model_array(model: dict, key: str, path) -> np.ndarray:
     if key not in model:
-        raise SkeletonError(f"{path}: SMPL-X model has no '{key}'")
+        raise SkeletonError(path, f"SMPL-X model has no '{key}'")
     return np.asarray(model[key], dtype=np.float64)
 
 
