@@ -34,7 +34,8 @@ import torch  # noqa: E402
 from agent.config import build_dataclass, load_yaml  # noqa: E402
 from agent.spec import MOSHI_SPEC, ConditionSpec  # noqa: E402
 from agent.timing import STEP_MS  # noqa: E402
-from bench.machine import BaselineMatmul, machine_report, memory_read_bandwidth_gbps, read_floor_ms  # noqa: E402
+from bench.machine import (BaselineMatmul, machine_report, memory_read_bandwidth_gbps,  # noqa: E402
+                           percentiles_ms, read_floor_ms)
 from gesture.codec.build import build_codec  # noqa: E402
 from gesture.codec.config import CodecConfig, load_codec_config  # noqa: E402
 from gesture.config import LMConfig, LMFileConfig  # noqa: E402
@@ -64,9 +65,7 @@ def _conditions(spec: ConditionSpec, steps: int, seed: int = 0) -> list:
 
 
 def _stats(ms: list[float], prefix: str = "") -> dict:
-    a = np.asarray(ms)
-    return {f"{prefix}median_ms": round(float(np.median(a)), 2), f"{prefix}p95_ms": round(float(np.percentile(a, 95)), 2),
-            f"{prefix}p99_ms": round(float(np.percentile(a, 99)), 2)}
+    return {f"{prefix}{key}": value for key, value in percentiles_ms(ms).items()}
 
 
 def time_steps(gens: dict[str, GestureGenerator], steps: int, warmup: int, baseline: BaselineMatmul) -> dict:

@@ -87,8 +87,6 @@ class StepTimeline:
 
     def finish(self) -> None:
         self._drain(final=True)
-        if isinstance(self.writer, BackgroundMp4Writer):
-            self.writer.drain()
 
 
 class RenderComponent:
