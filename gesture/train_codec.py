@@ -2,11 +2,12 @@
 
     python -m gesture.train_codec --config configs/codec/small.yaml --region upper \
         [--data ../shared/data/beat2/2_scott_0_1_1.npz] [--steps N] [--out DIR] [--resume]
-        [--finetune-decoder TRAINED_DIR]
+        [--finetune-decoder TRAINED_DIR | --init-from TRAINED_DIR]
 
 `--finetune-decoder` starts from a trained codec and trains only its decoder half (transformer_decoder and
 seanet_decoder) on the codes of the frozen encoder and quantizer: the codes of every clip stay exactly what they
 were, so a language model trained on them stays valid, while the reconstruction from those codes improves.
+`--init-from` starts every part from a trained codec of the same sizes (a warm start, e.g. under a new loss).
 
 Runs unchanged under torchrun (DDP: gloo on CPU, nccl on GPU; each rank draws its own batches).
 Writes DIR/model.safetensors + config.yaml (loadable by gesture.codec.checkpoint.load_codec),
@@ -35,7 +36,7 @@ from gesture.codec.checkpoint import MODEL_FILE, load_optimizer, save_codec, sav
 from gesture.codec.config import REGIONS, CodecFileConfig, load_codec_config  # noqa: E402
 from gesture.codec.data import load_motion_splits, sample_batch  # noqa: E402
 from gesture.codec.evaluation import evaluate  # noqa: E402
-from gesture.codec.losses import RegionLoss  # noqa: E402
+from gesture.codec.losses import RegionLoss, balanced_joint_weights  # noqa: E402
 from gesture.codec.model import GestureCodec  # noqa: E402
 from gesture.skeleton import Skeleton  # noqa: E402
 
@@ -72,7 +73,8 @@ class CodecTrainer:
     """Holds the codec, optimiser, schedule and history of one region's training run."""
 
     def __init__(self, config: CodecFileConfig, region: str, data: Path, out: Path, skeleton: Skeleton,
-                 device: torch.device = torch.device("cpu"), finetune_from: Path | None = None) -> None:
+                 device: torch.device = torch.device("cpu"), finetune_from: Path | None = None,
+                 init_from: Path | None = None) -> None:
         self.config, self.region, self.out, self.skeleton, self.device = config, region, out, skeleton, device
         train = config.train
         self.rank = dist.get_rank() if dist.is_initialized() else 0
@@ -81,6 +83,8 @@ class CodecTrainer:
         self.train_data, self.heldout_data = load_motion_splits(data, train.holdout_seconds)
         self.codec: GestureCodec = build_codec(config.codec, region).to(device)
         self.frozen: tuple[torch.nn.Module, ...] = ()
+        if init_from is not None:
+            self._load_weights(init_from)
         if finetune_from is not None:
             self._load_weights(finetune_from)
             self.frozen = (self.codec.seanet_encoder, self.codec.transformer_encoder, self.codec.quantizer)
@@ -88,13 +92,21 @@ class CodecTrainer:
                 module.requires_grad_(False)
         # codebook buffers are kept in sync by the codebooks themselves (gesture.codec.quantizer)
         self.model = DDP(self.codec, broadcast_buffers=False) if dist.is_initialized() else self.codec
+        self.joint_weights = self._joint_weights()
         self.loss = RegionLoss(region, skeleton, train.log_speed_weight, train.speed_floor_mps,
-                               train.expression_mse_weight).to(device)
+                               train.expression_mse_weight, self.joint_weights).to(device)
         self.trained = [p for p in self.codec.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(self.trained, lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
         self.step = 0
         self.history: dict = {"step": [], "loss": [], "eval": []}
+
+    def _joint_weights(self) -> torch.Tensor | None:
+        """The loss's inverse-variance joint weights on the training data (None when train.balance_cap is 0)."""
+        if not self.config.train.balance_cap:
+            return None
+        features = torch.cat([s.features[self.region] for s in self.train_data])  # (T_total, nfeats)
+        return balanced_joint_weights(features, self.region, self.config.train.balance_cap)
 
     def _load_weights(self, directory: Path) -> None:
         from safetensors.torch import load_file
@@ -172,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
     parser.add_argument("--finetune-decoder", type=Path, metavar="TRAINED_DIR",
                         help="start from this trained codec and train only its decoder (the codes stay fixed)")
+    parser.add_argument("--init-from", type=Path, metavar="TRAINED_DIR",
+                        help="start every part from this trained codec (same sizes) and train it all")
     parser.add_argument("--smplx-model", type=Path, help="a real SMPL-X model file for the FK joints")
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     args = parser.parse_args(argv)
@@ -189,18 +203,24 @@ def main(argv: list[str] | None = None) -> int:
     skeleton = Skeleton.from_smplx_model(args.smplx_model) if args.smplx_model else Skeleton.default()
     if args.resume and not (out / MODEL_FILE).is_file():
         parser.error(f"--resume: no checkpoint in {out}")
-    if args.finetune_decoder and not (args.finetune_decoder / MODEL_FILE).is_file():
-        parser.error(f"--finetune-decoder: no checkpoint in {args.finetune_decoder}")
+    for option, directory in (("--finetune-decoder", args.finetune_decoder), ("--init-from", args.init_from)):
+        if directory and not (directory / MODEL_FILE).is_file():
+            return _usage_error(f"{option} {directory}: no checkpoint there")
+    if args.finetune_decoder and args.init_from:
+        return _usage_error("--init-from: not with --finetune-decoder (which already starts from its codec)")
     device = _start_distributed(torch.device(args.device))
     try:
-        trainer = CodecTrainer(config, args.region, args.data, out, skeleton, device, args.finetune_decoder)
+        trainer = CodecTrainer(config, args.region, args.data, out, skeleton, device, args.finetune_decoder,
+                               args.init_from)
         _run(trainer, steps, args.resume)
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()
     if trainer.rank == 0:
         final = trainer.history["eval"][-1]
-        print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final}, indent=1))
+        weights = None if trainer.joint_weights is None else [round(float(w), 3) for w in trainer.joint_weights]
+        print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final,
+                          "joint_weights": weights}, indent=1))
     return 0
 
 

@@ -44,10 +44,12 @@ def test_codes_of_real_motion_are_unchanged(trained):
         assert not torch.equal(base.decode(base.encode(frames)), tuned.decode(tuned.encode(frames)))
 
 
-def test_a_missing_trained_codec_is_a_clear_error(tmp_path, capsys):
+@pytest.mark.parametrize("option", ["--finetune-decoder", "--init-from"])
+def test_a_missing_trained_codec_is_a_clear_error(tmp_path, capsys, option):
     config = tmp_path / "tiny.yaml"
     config.write_text(yaml.safe_dump(TINY_YAML))
-    with pytest.raises(SystemExit):
-        main(["--config", str(config), "--region", "upper", "--data", str(CLIP), "--out", str(tmp_path / "o"),
-              "--finetune-decoder", str(tmp_path / "nowhere")])
-    assert "--finetune-decoder: no checkpoint in" in capsys.readouterr().err
+    nowhere = tmp_path / "nowhere"
+    code = main(["--config", str(config), "--region", "upper", "--data", str(CLIP), "--out", str(tmp_path / "o"),
+                 option, str(nowhere)])
+    assert code == 2
+    assert capsys.readouterr().err.strip() == f"error: {option} {nowhere}: no checkpoint there"

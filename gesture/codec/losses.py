@@ -15,6 +15,11 @@ minimum, i.e. a motion beat; in log speed a slow segment weighs as much as a str
 Also optional (`expression_mse_weight` > 0, 10 for the default face codec): the MSE of the expressions. The L1
 term alone is minimised by the median, and blinks, brow raises and smiles are rare events whose median is rest:
 the small face codec trained on L1 alone reconstructed a face that never blinks (the README's quality section).
+Also optional (`balance_cap` > 0, used by the default codecs): inverse-variance weights. Each joint's rotation terms
+are weighted by (largest variance / its variance), capped
+at `balance_cap`, then normalised to mean 1 (`balance_weights`). Unweighted, the small codecs reproduced the
+large arm rotations and output a constant mean pose for the spine, neck, head, collars and wrists, whose
+variance is 10-800x smaller: a speaker's head and torso motion vanished in the codec.
 SMPL-X vertex terms need a licensed body model and are not computed here. Joint positions come
 from `gesture.skeleton.forward_kinematics` on the given skeleton (default: the built-in one), with
 every joint outside the region at rest and no translation (the lower body adds its integrated root).
@@ -27,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from gesture.codec.evaluation import region_rot6d
 from gesture.regions import (CONTACT_JOINTS, FACE_EXPRESSION_SLICE, FACE_JAW_SLICE, JAW_JOINT, LOWER_CONTACT_SLICE,
                              LOWER_JOINTS, LOWER_ROT_SLICE, LOWER_VELOCITY_SLICE, MOTION_FPS, UPPER_JOINTS)
 from gesture.metrics import BEAT_JOINTS
@@ -105,11 +111,35 @@ def log_speed_error(pred_joints: torch.Tensor, gt_joints: torch.Tensor, floor_mp
     return _mse(log_speed(pred_joints), log_speed(gt_joints))
 
 
+def balance_weights(variances: torch.Tensor, cap: float) -> torch.Tensor:
+    """(N,) variances -> (N,) weights: largest variance / variance, clamped to [1, cap]."""
+    return (variances.max() / variances.clamp_min(1e-12)).clamp(1.0, cap)
+
+
+def rotation_variances(rot6d: torch.Tensor) -> torch.Tensor:
+    """(T, J, 6) -> (J,) mean squared geodesic angle (rad^2) to each joint's mean rotation (the rotation
+    nearest the mean matrix)."""
+    matrices = rot6d_to_matrix(rot6d)  # (T, J, 3, 3)
+    u, _, vh = torch.linalg.svd(matrices.mean(0))  # (J, 3, 3) each
+    flip = torch.ones_like(u[:, 0])  # (J, 3): makes the nearest orthogonal matrix a proper rotation
+    flip[:, 2] = torch.linalg.det(u @ vh)
+    mean = u @ torch.diag_embed(flip) @ vh
+    return geodesic_angle(matrices, mean.expand_as(matrices)).pow(2).mean(0)
+
+
+def balanced_joint_weights(features: torch.Tensor, region: str, cap: float) -> torch.Tensor:
+    """RegionLoss's `joint_weights` (J,) from (T, nfeats) training features."""
+    return balance_weights(rotation_variances(region_rot6d(features, region)), cap)
+
+
 class RegionLoss(nn.Module):
-    """`loss(pred, target) -> dict` of weighted terms and their sum under "total"."""
+    """`loss(pred, target) -> dict` of weighted terms and their sum under "total".
+
+    `joint_weights` (J,) scale each region joint's rotation terms, normalised to mean 1 (see `balance_weights`)."""
 
     def __init__(self, region: str, skeleton: Skeleton | None = None, log_speed_weight: float = 0.0,
-                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0) -> None:
+                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0,
+                 joint_weights: torch.Tensor | None = None) -> None:
         super().__init__()
         if region not in ("upper", "lower", "face"):
             raise ValueError(f"region must be upper, lower or face, got {region!r}")
@@ -118,9 +148,11 @@ class RegionLoss(nn.Module):
         self.skeleton = skeleton or Skeleton.default()
         joints = {"upper": UPPER_JOINTS, "lower": LOWER_JOINTS, "face": (JAW_JOINT,)}[region]
         self.joints = list(joints)
-        weights = torch.ones(len(joints))
+        weights = torch.ones(len(joints)) if joint_weights is None else joint_weights.float().clone()
+        if weights.shape != (len(joints),):
+            raise ValueError(f"joint_weights must be ({len(joints)},) for the {region} region, got {tuple(weights.shape)}")
         if region == "lower":
-            weights[self.joints.index(0)] = 10.0  # the root
+            weights[self.joints.index(0)] *= 10.0  # the root
         self.register_buffer("joint_weights", weights, persistent=False)
 
     def _rot6d(self, x: torch.Tensor) -> torch.Tensor:
