@@ -98,6 +98,21 @@ class IdleGateConfig:
 
 
 @dataclass(frozen=True)
+class MicroMotionConfig:
+    """The micro-motion layer on the decoded pose (gesture.micro_motion; not in the reference, off by default)."""
+
+    enabled: bool = False
+    joints: tuple[int, ...] = (3, 6, 9, 12, 13, 14, 15, 20, 21)  # spine, neck, collars, head, wrists
+    scale: float = 1.0  # times every fitted standard deviation
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise ConfigError("gesture.micro_motion.joints: must name at least one joint")
+        if self.scale < 0:
+            raise ConfigError(f"gesture.micro_motion.scale: must be >= 0, got {self.scale}")
+
+
+@dataclass(frozen=True)
 class GestureConfig:
     """The `gesture:` section: checkpoints, sampling, classifier-free guidance, idle gate, speaker."""
 
@@ -118,6 +133,7 @@ class GestureConfig:
     initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0)
     dialogue_spec: Optional[ConditionSpec] = None  # checked against the LM checkpoint's spec at start-up
     idle: IdleGateConfig = field(default_factory=IdleGateConfig)
+    micro_motion: MicroMotionConfig = field(default_factory=MicroMotionConfig)
 
     def __post_init__(self) -> None:
         if self.temperature <= 0:

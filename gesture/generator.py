@@ -7,7 +7,8 @@
 Per step (MIBURI-FACTS sections 3 and 5): the temporal transformer gives level 0, the depth transformer levels
 1..19, each sampled with temperature and top-p (the exact rule of `gesture.lm.sampling`), with classifier-free
 guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level. The optional
-idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history). Each codec
+idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history); the optional
+micro-motion layer (`gesture.micro_motion`, not in the reference) then moves the joints the small codecs hold still. Each codec
 stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
 at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
 so this puts the feet near the floor.
@@ -30,6 +31,7 @@ from gesture.lm.model import GestureLM
 from gesture.lm.naive import NaiveStepper
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
+from gesture.micro_motion import MicroMotion, is_speaking
 from gesture.regions import LOWER_VELOCITY_SLICE, features_to_motion
 
 REGIONS = ("upper", "lower", "face")
@@ -54,7 +56,7 @@ class GestureGenerator:
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
                  seed: int = 0, dtype: str = "float32", idle_gate: Optional[IdleGate] = None,
-                 initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
+                 micro_motion: Optional[MicroMotion] = None, initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
                  engine: Literal["cached", "naive"] = "cached") -> None:
         self.sizes = lm.sizes
         self.spec = lm.spec
@@ -71,6 +73,7 @@ class GestureGenerator:
         self.decoders = {name: StreamingDecoder(_inference_codec(codecs[name], dtype)) for name in REGIONS}
         self.unguided = set(self.sizes.lower_levels)
         self.idle_gate = idle_gate
+        self.micro_motion = micro_motion
         self.initial_translation = np.asarray(initial_translation, np.float64)
         self.seed = seed
         self.generator = torch.Generator()
@@ -83,6 +86,8 @@ class GestureGenerator:
             decoder.reset()
         if self.idle_gate is not None:
             self.idle_gate.reset()
+        if self.micro_motion is not None:
+            self.micro_motion.reset()
         self.generator.manual_seed(self.seed)
         self.history = torch.full((self.sizes.n_levels,), -1, dtype=torch.long)
         self.carry = self.initial_translation.copy()
@@ -96,7 +101,8 @@ class GestureGenerator:
 
     @torch.inference_mode()
     def step(self, text_token: int, audio_codes, agent_pcm: Optional[np.ndarray] = None) -> GeneratedStep:
-        """text_token: id or −1; audio_codes (Q,) ints (−1 = none); agent_pcm: this step's agent audio (idle gate)."""
+        """text_token: id or −1; audio_codes (Q,) ints (−1 = none); agent_pcm: this step's agent audio (idle gate,
+        micro-motion)."""
         audio = self._check_condition(text_token, audio_codes)
         tokens, face_logits = self._sample_tokens(int(text_token), audio)
         self.history = tokens
@@ -111,6 +117,8 @@ class GestureGenerator:
             idle = self.idle_gate.silent
             decoded = self.idle_gate.apply(decoded)
         poses, trans, expressions = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
+        if self.micro_motion is not None:
+            poses = self.micro_motion.step(poses, is_speaking(agent_pcm)).astype(np.float32)
         return GeneratedStep(tokens.numpy().astype(np.int32), poses, trans, expressions, va_prob, idle)
 
     def _check_condition(self, text_token: int, audio_codes) -> torch.Tensor:

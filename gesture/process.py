@@ -24,11 +24,12 @@ from agent.config import ConfigError
 from agent.messages import DialogueStep, GestureStep, Message
 from agent.stage import RunContext
 from agent.timing import MOTION_FPS, STEP_SAMPLES
-from gesture.config import GestureConfig
+from gesture.config import GestureConfig, MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
+from gesture.micro_motion import MicroMotion, calibrated_micro_motion
 from gesture.nn.weights import UnsupportedFormError, require_fast_form
 
 log = logging.getLogger(__name__)
@@ -116,7 +117,18 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
                         cfg.idle.window_samples, cfg.idle.l2_threshold, cfg.idle.rewind_below_tokens)
     return GestureGenerator(lm, codecs, temperature=cfg.temperature, top_p_temporal=cfg.top_p_temporal,
                             top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
-                            dtype=cfg.dtype, idle_gate=idle, initial_translation=cfg.initial_translation)
+                            dtype=cfg.dtype, idle_gate=idle, micro_motion=build_micro_motion(cfg.micro_motion, seed),
+                            initial_translation=cfg.initial_translation)
+
+
+def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotion]:
+    """The `gesture.micro_motion` layer, or None when it is off."""
+    if not cfg.enabled:
+        return None
+    try:
+        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale)
+    except ValueError as error:
+        raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
 
 
 def warm_up(generator: GestureGenerator, steps: int) -> None:
