@@ -8,6 +8,8 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 ``--motion`` reuses one) and compared with the real motion of that clip. Two references are measured the same
 way, so the report is seen to discriminate:
 
+- ``generated_without_micro_motion``: the same agent with ``gesture.micro_motion.enabled=false`` (what its codecs
+  alone carry; not measured with ``--motion``);
 - ``synthetic_gt``: the synthetic generator (gesture.data.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
 - ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``): the ceiling of what
@@ -418,19 +420,19 @@ def _json_safe(value):
 
 def format_table(report: dict) -> str:
     names = [k for k in report if k not in ("real", "meta")]
-    lines = [f"{'ratio to real':30s}" + "".join(f"{n:>20s}" for n in names)]
+    lines = [f"{'ratio to real':30s}" + "".join(f"{n:>32s}" for n in names)]
     for group in JOINT_GROUPS:
         for key in report["real"]["groups"][group]:
             row = [report[n]["ratios"]["groups"][group][key] for n in names]
-            lines.append(f"{group + ' ' + key:30s}" + "".join(f"{v:20.2f}" for v in row))
+            lines.append(f"{group + ' ' + key:30s}" + "".join(f"{v:32.2f}" for v in row))
     for section in ("hands", "face"):
         for key in report[names[0]]["ratios"][section]:
             row = [report[n]["ratios"][section][key] for n in names]
-            lines.append(f"{key:30s}" + "".join(f"{'none':>20s}" if v is None else f"{v:20.2f}" for v in row))
-    lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:20.2f}" for n in names))
-    lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:20.2f}" for n in names))
-    lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:20.3f}" for n in names))
-    lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:20.3f}" for n in names))
+            lines.append(f"{key:30s}" + "".join(f"{'none':>32s}" if v is None else f"{v:32.2f}" for v in row))
+    lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:32.2f}" for n in names))
+    lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:32.2f}" for n in names))
+    lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:32.3f}" for n in names))
+    lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:32.3f}" for n in names))
     return "\n".join(lines)
 
 
@@ -464,7 +466,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         real = cut(real, n)
         synthetic = (cut(load_clip(args.synthetic), n) if args.synthetic
                      else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json")))
-        motions = {"generated": cut(generated, n), "synthetic_gt": synthetic,
+        motions = {"generated": cut(generated, n)}
+        if not args.motion:  # the same agent without its micro-motion layer: what the codecs alone carry
+            plain_npz = speak_clip(wav, args.seed, out / "agent_without_micro_motion",
+                                   args.set + ["gesture.micro_motion.enabled=false"])
+            motions["generated_without_micro_motion"] = cut(load_clip(plain_npz), n)
+        motions |= {"synthetic_gt": synthetic,
                    "baseline": baseline_reference(real, args.seed),
                    "real_through_codecs": cut(through_codecs(real, Path(args.codecs)), n)}
         report = build_report(real, motions, M.load_speech(wav),
