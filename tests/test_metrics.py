@@ -46,26 +46,40 @@ def test_face_vertex_mse():
     assert M.face_vertex_mse(pred, gt, dirs) == pytest.approx((0.2**2 + 0) / 2)  # only the 2 face vertices
 
 
-def test_beat_detection_quirk_vs_corrected():
-    fps, trim = 30, 60
+def test_threshold_index_slip_vs_corrected():
+    trim = 60
     t = np.arange(400)
-    mean = np.full(55, 0.2)
-    # normalised speed of the left wrist: slow (0.1) before frame 150, then 1 + 0.5 |sin|, whose
-    # minima (frames 180, 210, ..., 330) are beats; all above the 0.3 threshold
-    speed_norm = np.where(t < 150, 0.1, 1.0 + 0.5 * np.abs(np.sin(np.pi * t / 30)))
-    joints = np.zeros((400, 55, 3))
-    step = speed_norm * mean[20] / fps
-    joints[:, 20, 0] = np.cumsum(step) - step / 2  # central differences then give a symmetric speed
-    corrected = M.motion_beat_frames(joints, mean, fps, trim, reference_quirk=False)[20] / fps  # left wrist
-    np.testing.assert_allclose(corrected, (np.arange(180, 331, 30) - trim) / fps)
+    # normalised speed of the left wrist: slow (0.1) before frame 150, then 1 + 0.5 |sin|, whose minima
+    # (frames 180, 210, ..., 330) are beats; all above the 0.3 threshold
+    speed = np.zeros((400, 55))
+    speed[:, 20] = np.where(t < 150, 0.1, 1.0 + 0.5 * np.abs(np.sin(np.pi * t / 30)))
+    corrected = M.speed_minima_beats(speed, trim, slipped_threshold=False)
+    np.testing.assert_array_equal(corrected[20], np.arange(180, 331, 30) - trim)
+    assert all(len(b) == 0 for j, b in enumerate(corrected) if j != 20)  # still joints have no minima
     # the reference tests the threshold at the window-relative index as if absolute: the minimum at
     # absolute frame 180 (relative 120) is tested at frame 120, where the wrist is slow, and dropped
-    quirk = M.motion_beat_frames(joints, mean, fps, trim, reference_quirk=True)[20] / fps
-    np.testing.assert_allclose(quirk, (np.arange(210, 331, 30) - trim) / fps)
-    assert M.beat_align_score(corrected, [corrected]) == pytest.approx(1.0)
-    assert M.beat_align_score(corrected + 0.3, [corrected]) == pytest.approx(np.exp(-0.5))
-    assert M.beat_align_score(corrected, [np.array([])]) == 0.0
-    assert np.isnan(M.beat_align_score(np.array([]), [corrected]))
+    slipped = M.speed_minima_beats(speed, trim, slipped_threshold=True)
+    np.testing.assert_array_equal(slipped[20], np.arange(210, 331, 30) - trim)
+    beats_s = corrected[20] / 30
+    assert M.beat_align_score(beats_s, [beats_s]) == pytest.approx(1.0)
+    assert M.beat_align_score(beats_s + 0.3, [beats_s]) == pytest.approx(np.exp(-0.5))
+    assert M.beat_align_score(beats_s, [np.array([])]) == 0.0
+    assert np.isnan(M.beat_align_score(np.array([]), [beats_s]))
+
+
+def test_reference_beats_come_from_the_joints_as_l1div_leaves_them():
+    """The reference's L1div overwrites its joints with |x - clip mean|, and its beats are found on that array.
+    A wrist moving at constant speed has no speed minimum, but on that array it stands still where it passes
+    its clip mean, which makes one beat there."""
+    fps, trim, n = 30, 60, 401
+    joints = np.zeros((n, 55, 3))
+    joints[:, 20, 0] = np.arange(n) / 128  # 1/128 m a frame (exact in float32): the mean is frame 200's position
+    mean_speed = np.full(55, 30 / 128)  # the wrist's speed: 1 in normalised units
+    np.testing.assert_array_equal(M.joints_as_left_by_l1div(joints)[[0, 199, 200, 201, 400], 20, 0],
+                                  np.array([200, 1, 0, 1, 200]) / 128)
+    reference = M.motion_beat_frames(joints, mean_speed, fps, trim, reference_quirk=True)
+    np.testing.assert_array_equal(reference[20], [200 - trim])
+    assert all(len(b) == 0 for b in M.motion_beat_frames(joints, mean_speed, fps, trim, reference_quirk=False))
 
 
 def _delayed(clip: M.MotionClip, frames: int) -> M.MotionClip:
@@ -82,7 +96,7 @@ PINNED_GT_VS_GT = {
     "l1div": 14.312405,
     "face_expression_mse": 0.0,
     "fgd_kinetic_geometric": 0.0,
-    "beat_align": 0.70687197,
+    "beat_align": 0.72689826,
     "beat_align_corrected": 0.45212939,
 }
 PINNED_GT_VS_DELAYED_10 = {
@@ -91,7 +105,7 @@ PINNED_GT_VS_DELAYED_10 = {
     "l1div": 14.327811,
     "face_expression_mse": 0.31355980,
     "fgd_kinetic_geometric": 0.0030115851,
-    "beat_align": 0.70251193,
+    "beat_align": 0.72225959,
     "beat_align_corrected": 0.45193671,
 }
 
