@@ -104,12 +104,15 @@ class MicroMotionConfig:
     enabled: bool = False
     joints: tuple[int, ...] = (3, 6, 9, 12, 13, 14, 15, 20, 21)  # spine, neck, collars, head, wrists
     scale: float = 1.0  # times every fitted standard deviation
+    blinks_per_minute: float = 17.0  # the synthetic agent's (gesture.data.synth.face.BLINKS_PER_MINUTE); 0: none
 
     def __post_init__(self) -> None:
         if not self.joints:
             raise ConfigError("gesture.micro_motion.joints: must name at least one joint")
         if self.scale < 0:
             raise ConfigError(f"gesture.micro_motion.scale: must be >= 0, got {self.scale}")
+        if not 0 <= self.blinks_per_minute < 75:
+            raise ConfigError(f"gesture.micro_motion.blinks_per_minute: must be in [0, 75), got {self.blinks_per_minute}")
 
 
 @dataclass(frozen=True)

@@ -118,7 +118,8 @@ class GestureGenerator:
             decoded = self.idle_gate.apply(decoded)
         poses, trans, expressions = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
         if self.micro_motion is not None:
-            poses = self.micro_motion.step(poses, is_speaking(agent_pcm)).astype(np.float32)
+            poses, expressions = self.micro_motion.step(poses, expressions, is_speaking(agent_pcm))
+            poses = poses.astype(np.float32)
         return GeneratedStep(tokens.numpy().astype(np.int32), poses, trans, expressions, va_prob, idle)
 
     def _check_condition(self, text_token: int, audio_codes) -> torch.Tensor:

@@ -26,6 +26,8 @@ import torch
 from gesture.data.synth.agent import (MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_LISTENING,
                                       MICRO_PARTS)
 from gesture.data.synth.calibration import load_calibration
+from gesture.data.synth.face import BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S
+from gesture.data.synth.tracks import bump
 from gesture.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 
 FILTER_POLES = 4
@@ -113,13 +115,36 @@ class CausalSmoothNoise:
         return x.copy()
 
 
-class MicroMotion:
-    """`step(poses (F, 55, 3), speaking)` adds one micro-motion offset per frame to `joints`; `reset()` per session.
+class BlinkTrain:
+    """`closure(t_s)` in [0, 1] of a seeded Poisson blink train, asked for at increasing times (causal: a blink is
+    drawn when the previous one starts and begins at its drawn time)."""
 
-    `params`: joint -> ((3,) std in rad per local axis, cutoff in Hz); `scale` multiplies every std."""
+    def __init__(self, per_minute: float, rng: np.random.Generator) -> None:
+        if per_minute * BLINK_REFRACTORY_S >= 60:
+            raise ValueError(f"blinks_per_minute: must be below {60 / BLINK_REFRACTORY_S:g}, got {per_minute}")
+        self.mean_gap_s, self.rng = 60.0 / per_minute, rng
+        self.blinks: list[tuple[float, float, float, float]] = []  # (centre, rise, hold, fall) still to finish
+        self.next_start_s = rng.exponential(self.mean_gap_s)
+
+    def closure(self, t_s: float) -> float:
+        while self.next_start_s <= t_s:
+            rise, hold, fall = (self.rng.uniform(*r) for r in (BLINK_RISE_S, BLINK_HOLD_S, BLINK_FALL_S))
+            self.blinks.append((self.next_start_s + rise, rise, hold, fall))
+            self.next_start_s += BLINK_REFRACTORY_S + self.rng.exponential(self.mean_gap_s - BLINK_REFRACTORY_S)
+        self.blinks = [b for b in self.blinks if t_s <= b[0] + b[2] + b[3]]
+        shapes = [float(bump(np.array([t_s]), *b)[0]) for b in self.blinks]
+        return min(1.0, sum(shapes))
+
+
+class MicroMotion:
+    """`step(poses (F, 55, 3), expressions (F, 100), speaking)` adds one micro-motion offset per frame to `joints`
+    and the blink train to the expressions; `reset()` per session.
+
+    `params`: joint -> ((3,) std in rad per local axis, cutoff in Hz); `scale` multiplies every std;
+    `blinks_per_minute` 0 adds no blinks."""
 
     def __init__(self, params: Mapping[int, tuple[np.ndarray, float]], fps: float, seed: int = 0,
-                 scale: float = 1.0, listening_scale: float = MICRO_LISTENING) -> None:
+                 scale: float = 1.0, listening_scale: float = MICRO_LISTENING, blinks_per_minute: float = 0.0) -> None:
         if not params:
             raise ValueError("micro-motion needs at least one joint")
         self.joints = sorted(params)
@@ -130,7 +155,7 @@ class MicroMotion:
         self.part = np.array([part_of.get(j, 0) for j in self.joints])  # (J,)
         self.listening_scale = listening_scale
         self.speaking_alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
-        self.seed = seed
+        self.fps, self.seed, self.blinks_per_minute = fps, seed, blinks_per_minute
         self.reset()
 
     def reset(self) -> None:
@@ -138,6 +163,9 @@ class MicroMotion:
         self.noise.reset(self.rng)
         self.gate.reset(self.rng)
         self.speaking = 0.0
+        self.frame = 0
+        blink_rng = np.random.default_rng([self.seed, 1])  # its own stream: blinks do not shift the body's noise
+        self.blinks = BlinkTrain(self.blinks_per_minute, blink_rng) if self.blinks_per_minute > 0 else None
 
     def offsets(self, speaking: bool) -> np.ndarray:
         """The next frame's (J, 3) axis-angle offsets."""
@@ -150,20 +178,27 @@ class MicroMotion:
         limit = LIMIT_STDS * self.std
         return limit * np.tanh(offset / np.maximum(limit, 1e-12))
 
-    def step(self, poses: np.ndarray, speaking: bool) -> np.ndarray:
-        """(F, 55, 3) axis-angle -> the same with each frame's offsets post-multiplied on `joints`."""
+    def step(self, poses: np.ndarray, expressions: np.ndarray, speaking: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(F, 55, 3) axis-angle, (F, 100) expressions -> the same with each frame's offsets post-multiplied on
+        `joints` and its blink closure added along the blink pattern."""
         offsets = np.stack([self.offsets(speaking) for _ in range(len(poses))])  # (F, J, 3)
         local = axis_angle_to_matrix(torch.from_numpy(poses[:, self.joints]).double())  # (F, J, 3, 3)
         moved = local @ axis_angle_to_matrix(torch.from_numpy(offsets))
         out = poses.copy()
         out[:, self.joints] = matrix_to_axis_angle(moved).numpy()
-        return out
+        times_s = (self.frame + np.arange(len(poses))) / self.fps
+        self.frame += len(poses)
+        if self.blinks is None:
+            return out, expressions
+        closure = np.array([self.blinks.closure(t) for t in times_s])  # (F,)
+        return out, (expressions + closure[:, None] * BLINK_PSI[None]).astype(expressions.dtype)
 
 
-def calibrated_micro_motion(joints: Sequence[int], fps: float, seed: int, scale: float = 1.0) -> MicroMotion:
+def calibrated_micro_motion(joints: Sequence[int], fps: float, seed: int, scale: float = 1.0,
+                            blinks_per_minute: float = 0.0) -> MicroMotion:
     """The layer with the calibration's fitted parameters for `joints` (each must have been fitted)."""
     fitted = load_calibration().micro_motion
     missing = [j for j in joints if j not in fitted]
     if missing:
         raise ValueError(f"joints {missing}: no fitted micro-motion (fitted: {sorted(fitted)})")
-    return MicroMotion({j: fitted[j] for j in joints}, fps, seed, scale)
+    return MicroMotion({j: fitted[j] for j in joints}, fps, seed, scale, blinks_per_minute=blinks_per_minute)

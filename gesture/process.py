@@ -126,7 +126,7 @@ def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotio
     if not cfg.enabled:
         return None
     try:
-        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale)
+        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, cfg.blinks_per_minute)
     except ValueError as error:
         raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
 

@@ -7,6 +7,7 @@ import torch
 
 from agent.config import ConfigError
 from gesture.config import MicroMotionConfig
+from gesture.data.synth.face import BLINK_PSI, BLINKS_PER_MINUTE
 from gesture.data.synth.tracks import smooth_noise
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
@@ -25,6 +26,10 @@ def _rest_poses(frames: int) -> np.ndarray:
     return poses
 
 
+def _moved(layer, poses: np.ndarray, speaking: bool = True) -> np.ndarray:
+    return layer.step(poses, np.zeros((len(poses), 100), np.float32), speaking)[0]
+
+
 def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
     rng = np.random.default_rng(0)
     noise = CausalSmoothNoise([0.5, 1.2], MOTION_FPS)
@@ -39,17 +44,17 @@ def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
 def test_streaming_in_steps_equals_one_call_and_reset_replays():
     poses = _rest_poses(40)
     layer = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=3)
-    whole = layer.step(poses, speaking=True)
+    whole = _moved(layer, poses)
     layer.reset()
-    steps = np.concatenate([layer.step(poses[i:i + 2], speaking=True) for i in range(0, 40, 2)])
+    steps = np.concatenate([_moved(layer, poses[i:i + 2]) for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
-    other = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=4).step(poses, speaking=True)
+    other = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=4), poses)
     assert not np.array_equal(whole, other)
 
 
 def test_only_the_chosen_joints_move_and_by_their_fitted_size():
     poses = _rest_poses(2000)
-    moved = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0).step(poses, speaking=True)
+    moved = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses)
     untouched = [j for j in range(55) if j not in JOINTS]
     np.testing.assert_array_equal(moved[:, untouched], poses[:, untouched])
     angles = geodesic_angle(axis_angle_to_matrix(torch.from_numpy(moved[:, list(JOINTS)])),
@@ -59,10 +64,23 @@ def test_only_the_chosen_joints_move_and_by_their_fitted_size():
 
 def test_listening_is_calmer_than_speaking():
     poses = _rest_poses(3000)
-    speak = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0).step(poses, speaking=True)
-    listen = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0).step(poses, speaking=False)
+    speak = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses, speaking=True)
+    listen = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses, speaking=False)
     ratio = np.abs(listen[:, list(JOINTS)]).mean() / np.abs(speak[:, list(JOINTS)]).mean()
     assert 0.3 < ratio < 0.6  # the synthetic agent's listening scale is 0.45
+
+
+def test_blinks_come_at_the_synthetic_rate_along_the_blink_pattern():
+    frames = 25 * 600  # ten minutes
+    layer = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0, blinks_per_minute=BLINKS_PER_MINUTE)
+    expressions = np.zeros((frames, 100), np.float32)
+    _, blinked = layer.step(_rest_poses(frames), expressions, speaking=True)
+    closure = blinked @ BLINK_PSI / (BLINK_PSI @ BLINK_PSI)  # (T,) back along the pattern
+    np.testing.assert_allclose(blinked, closure[:, None] * BLINK_PSI[None], atol=1e-6)
+    starts = np.flatnonzero((closure[1:] > 0.5) & (closure[:-1] <= 0.5))
+    assert 0.8 * BLINKS_PER_MINUTE < len(starts) / 10 < 1.2 * BLINKS_PER_MINUTE
+    assert closure.max() <= 1.0 + 1e-6 and np.diff(starts).min() >= 0.8 * MOTION_FPS - 1
+    assert MicroMotionConfig().blinks_per_minute == BLINKS_PER_MINUTE  # the config's default is the data's rate
 
 
 def test_speaking_follows_the_idle_gates_silence_level():
@@ -83,11 +101,14 @@ def test_generator_applies_the_layer_after_decoding():
         untouched = [j for j in range(55) if j not in JOINTS]
         np.testing.assert_allclose(b.poses[:, untouched], a.poses[:, untouched], atol=1e-6)
         assert not np.allclose(b.poses[:, list(JOINTS)], a.poses[:, list(JOINTS)], atol=1e-4)
+        np.testing.assert_array_equal(a.expressions, b.expressions)  # no blinks asked for
 
 
 def test_config_errors_name_the_option():
     with pytest.raises(ConfigError, match="gesture.micro_motion.scale: must be >= 0"):
         MicroMotionConfig(scale=-1.0)
+    with pytest.raises(ConfigError, match=r"gesture.micro_motion.blinks_per_minute: must be in \[0, 75\)"):
+        MicroMotionConfig(blinks_per_minute=80.0)
     with pytest.raises(ConfigError, match="gesture.micro_motion.joints: must name at least one joint"):
         MicroMotionConfig(joints=())
     with pytest.raises(ConfigError, match=r"gesture.micro_motion.joints: joints \[30\]: no fitted micro-motion"):

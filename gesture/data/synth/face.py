@@ -48,6 +48,8 @@ FACE_PATTERNS = {"smile": SMILE_PSI, "brow_raise": BROW_PSI, "lips_apart": LIPS_
                  "mouth_wide": MOUTH_WIDE_PSI, "pucker": PUCKER_PSI, "blink": BLINK_PSI}
 JAW_OPEN_RAD = 0.10
 BLINKS_PER_MINUTE = 17.0
+BLINK_REFRACTORY_S = 0.8
+BLINK_RISE_S, BLINK_HOLD_S, BLINK_FALL_S = (0.06, 0.1), (0.02, 0.06), (0.12, 0.2)  # uniform ranges of a blink's phases
 
 
 def blink_track(rng: np.random.Generator, n_frames: int, fps: float, extra_times_s: list[float]) -> np.ndarray:
@@ -56,11 +58,11 @@ def blink_track(rng: np.random.Generator, n_frames: int, fps: float, extra_times
     times, t = [], rng.exponential(60.0 / BLINKS_PER_MINUTE)
     while t < duration:
         times.append(t)
-        t += 0.8 + rng.exponential(60.0 / BLINKS_PER_MINUTE - 0.8)
-    times += [x for x in extra_times_s if all(abs(x - y) > 0.8 for y in times)]
+        t += BLINK_REFRACTORY_S + rng.exponential(60.0 / BLINKS_PER_MINUTE - BLINK_REFRACTORY_S)
+    times += [x for x in extra_times_s if all(abs(x - y) > BLINK_REFRACTORY_S for y in times)]
     closure = np.zeros(n_frames)
     for t in times:
-        add_bump(closure, fps, t, rng.uniform(0.06, 0.1), rng.uniform(0.02, 0.06), rng.uniform(0.12, 0.2), 1.0)
+        add_bump(closure, fps, t, rng.uniform(*BLINK_RISE_S), rng.uniform(*BLINK_HOLD_S), rng.uniform(*BLINK_FALL_S), 1.0)
     return np.clip(closure, 0.0, 1.0)
 
 
