@@ -25,15 +25,16 @@ from pathlib import Path  # noqa: E402
 
 import yaml  # noqa: E402
 
-from agent.config import ConfigError  # noqa: E402
-from agent.io.audio_file import AudioFileError, load_audio  # noqa: E402
+from core.config import ConfigError  # noqa: E402
+from core.audio_file import AudioFileError, load_audio  # noqa: E402
 from agent.io.sources import NoAudioDevice, check_input_device  # noqa: E402
-from agent.bus import stage_address  # noqa: E402
+from core.bus import stage_address  # noqa: E402
 from agent.latency import format_table  # noqa: E402
 from agent.sections import AppConfig, load_app_config  # noqa: E402
-from agent.stage import SUPERVISOR, RunContext  # noqa: E402
+from agent.stage import SUPERVISOR  # noqa: E402
+from core.component import RunContext
 from agent.supervisor import Supervisor, run_worker  # noqa: E402
-from agent.timing import SAMPLE_RATE_HZ  # noqa: E402
+from core.timing import SAMPLE_RATE_HZ  # noqa: E402
 
 DEFAULT_CONFIG = Path(__file__).parent / "configs" / "default.yaml"
 EXIT_USAGE = 2

@@ -17,8 +17,8 @@ from typing import Sequence
 
 import numpy as np
 
-from agent.messages import Metrics
-from agent.timing import FRAMES_PER_STEP
+from core.messages import Metrics
+from core.timing import FRAMES_PER_STEP
 
 PERCENTILES = (50, 95, 99)
 NS_PER_MS = 1e6

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from agent.sections import AppConfig
-from agent.stage import RunContext, StageRunner, Topology
+from agent.stage import StageRunner, Topology
+from core.component import RunContext
 
 COMPONENT_FACTORIES = {
     "io": "agent.io.process:create_component",

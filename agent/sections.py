@@ -7,57 +7,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Sequence
 
-from agent.config import ConfigError, apply_override, build_dataclass, load_yaml, parse_override
+from core.bus import STAGES, BusConfig
+from core.config import ConfigError, apply_override, build_dataclass, load_yaml, parse_override
 from agent.dashboard.config import DashboardConfig
 from dialogue.config import DialogueConfig
 from gesture.config import GestureConfig
 from render.config import RenderConfig
-
-STAGES = ("io", "dialogue", "gesture", "render")
-
-
-@dataclass(frozen=True)
-class BusConfig:
-    """Where each process publishes, and how the bus behaves.
-
-    `transport: ipc` binds `ipc://<private run dir>/<stage>.sock`; `tcp` binds `tcp://<host>:<base_port + i>`;
-    `base_port: 0` gives every endpoint a free port (one host runs every stage), so tcp runs never collide.
-    `endpoints` pins a stage to an explicit address (`tcp://gpu-box:5601`) to split the loop across hosts.
-    A stage fails the run when its handler fails on `max_handler_failures` messages in a row, or when it
-    publishes nothing for `stall_timeout_s` while its upstream stage is ahead of it (a heartbeat alone does
-    not count as progress).
-    """
-
-    transport: Literal["ipc", "tcp"] = "ipc"
-    host: str = "127.0.0.1"
-    base_port: int = 5600
-    endpoints: dict[str, str] = field(default_factory=dict)
-    live_queue_steps: int = 4
-    credit_window_steps: int = 32
-    heartbeat_s: float = 0.25
-    heartbeat_timeout_s: float = 15.0
-    ready_timeout_s: float = 180.0
-    stop_timeout_s: float = 1.5
-    max_handler_failures: int = 16
-    stall_timeout_s: float = 30.0
-
-    def __post_init__(self):
-        if not 0 <= self.base_port <= 65535 - len(STAGES) - 2:
-            raise ConfigError(f"bus.base_port: must be a tcp port (1-{65535 - len(STAGES) - 2}), or 0 for free "
-                              f"ports; got {self.base_port}")
-        if self.stall_timeout_s <= 0:
-            raise ConfigError(f"bus.stall_timeout_s: must be > 0, got {self.stall_timeout_s}")
-        for name in ("live_queue_steps", "credit_window_steps", "max_handler_failures"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"bus.{name}: must be >= 1, got {getattr(self, name)}")
-        if not 0 < self.heartbeat_s < self.heartbeat_timeout_s:
-            raise ConfigError("bus.heartbeat_s: must be > 0 and below bus.heartbeat_timeout_s")
-        unknown = sorted(set(self.endpoints) - set(STAGES) - {"supervisor", "dashboard"})
-        if unknown:
-            raise ConfigError(f"bus.endpoints.{unknown[0]}: unknown stage (stages: {', '.join(STAGES)})")
-        for stage, address in self.endpoints.items():
-            if not address.startswith(("tcp://", "ipc://")):
-                raise ConfigError(f"bus.endpoints.{stage}: expected tcp://host:port or ipc://path, got {address!r}")
 
 
 @dataclass(frozen=True)

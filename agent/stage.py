@@ -25,15 +25,15 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Protocol, Sequence
+from typing import Optional, Sequence
 
-import numpy as np
 import zmq
 
-from agent.bus import Publisher, Subscriber, stage_address
-from agent.messages import AudioUser, Command, Control, Message, Metrics, StageState
+from core.bus import Publisher, Subscriber, stage_address
+from core.component import Component, RunContext, Source, StageFailed
+from core.messages import AudioUser, Command, Control, Message, Metrics, StageState
 from agent.sections import AppConfig
-from agent.timing import STEP_NS
+from core.timing import STEP_NS
 
 log = logging.getLogger(__name__)
 
@@ -46,45 +46,6 @@ DATA_INPUTS = {  # stage -> {upstream stage: topic}; the io stage's speaker inpu
 }
 SUPERVISOR = "supervisor"
 MAX_POLL_MS = 50
-
-
-class StageFailed(RuntimeError):
-    """Raised by a component's handler when no later message can succeed (e.g. its output cannot be written).
-
-    The message is one line naming what failed, e.g. "cannot write out.mp4: [Errno 28] No space left on device".
-    """
-
-
-@dataclass(frozen=True)
-class RunContext:
-    """What a component may know about the run."""
-
-    run_dir: Path
-    live: bool
-    seed: int
-    session: str
-
-
-class Component(Protocol):
-    def handle(self, msg: Message) -> Sequence[Message]: ...
-
-    def flush(self) -> Sequence[Message]: ...
-
-    def close(self) -> None: ...
-
-
-class Source(Protocol):
-    """Blocks of user audio. `paced` sources (a microphone) deliver in real time by themselves."""
-
-    paced: bool
-
-    def next_block(self, timeout_s: float) -> Optional[tuple[np.ndarray, Optional[int]]]:
-        """(pcm (1920,) float32, capture time of its last sample in monotonic ns or None); None when waiting."""
-
-    @property
-    def exhausted(self) -> bool: ...
-
-    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)

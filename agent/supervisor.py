@@ -27,15 +27,16 @@ from typing import Optional
 
 import zmq
 
-from agent.bus import Publisher, Subscriber, stage_address
+from core.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
 from agent.dashboard.launcher import DASHBOARD, DashboardProcess
 from agent.latency import LatencyRecorder
-from agent.messages import Command, Control, Log, Metrics
+from core.messages import Command, Control, Log, Metrics
 from agent.process import COMPONENT_FACTORIES, StageLaunch, stage_main
 from agent.sections import AppConfig
-from agent.stage import SUPERVISOR, RunContext
-from agent.timing import STEP_MS
+from agent.stage import SUPERVISOR
+from core.component import RunContext
+from core.timing import STEP_MS
 
 log = logging.getLogger("supervisor")
 

@@ -19,9 +19,9 @@ import time
 import numpy as np
 import zmq
 
-from agent.bus import Publisher, Subscriber
+from core.bus import Publisher, Subscriber
 from agent.latency import percentiles
-from agent.messages import Command, Control, GestureStep, RenderFrame
+from core.messages import Command, Control, GestureStep, RenderFrame
 from bench.machine import machine_report
 
 FRAME_SIDE = 512

@@ -21,8 +21,8 @@ import soundfile as sf  # noqa: E402
 import torch  # noqa: E402
 from scipy.signal import resample_poly  # noqa: E402
 
-from agent.config import build_dataclass  # noqa: E402
-from agent.timing import SAMPLE_RATE_HZ, STEP_MS, STEP_SAMPLES  # noqa: E402
+from core.config import build_dataclass  # noqa: E402
+from core.timing import SAMPLE_RATE_HZ, STEP_MS, STEP_SAMPLES  # noqa: E402
 from dialogue.config import DialogueConfig  # noqa: E402
 from bench.machine import machine_report  # noqa: E402
 from dialogue.local_backend import LocalBackend  # noqa: E402

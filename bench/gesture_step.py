@@ -31,9 +31,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # an entry point: before num
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from agent.config import build_dataclass, load_yaml  # noqa: E402
-from agent.spec import MOSHI_SPEC, ConditionSpec  # noqa: E402
-from agent.timing import STEP_MS  # noqa: E402
+from core.config import build_dataclass, load_yaml  # noqa: E402
+from core.spec import MOSHI_SPEC, ConditionSpec  # noqa: E402
+from core.timing import STEP_MS  # noqa: E402
 from bench.machine import (BaselineMatmul, machine_report, memory_read_bandwidth_gbps,  # noqa: E402
                            percentiles_ms, read_floor_ms)
 from gesture.codec.build import build_codec  # noqa: E402

@@ -6,8 +6,8 @@ from typing import Protocol
 
 import numpy as np
 
-from agent.messages import DialogueStep
-from agent.spec import MOSHI_SPEC, ConditionSpec
+from core.messages import DialogueStep
+from core.spec import MOSHI_SPEC, ConditionSpec
 from dialogue.config import DialogueConfig
 from dialogue.text_vocab import LOCAL_SPEC
 from dialogue.transcript import Transcript

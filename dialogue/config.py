@@ -3,7 +3,7 @@
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
-from agent.config import ConfigError
+from core.config import ConfigError
 
 
 def _require(cond: bool, key: str, message: str) -> None:

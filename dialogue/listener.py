@@ -4,8 +4,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agent.messages import VadState
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.messages import VadState
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.asr import RecognizedWord, StreamingAsr
 from dialogue.config import AsrConfig, EchoConfig, VadConfig
 from dialogue.echo import EchoGate

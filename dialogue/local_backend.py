@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.messages import DialogueStep, VadState
-from agent.timing import STEP_SAMPLES
+from core.messages import DialogueStep, VadState
+from core.timing import STEP_SAMPLES
 from dialogue.config import DialogueConfig
 from dialogue.listener import Heard, ListeningBackend, STEP_S, UserListener
 from dialogue.responder import Reply, Responder, build_responder

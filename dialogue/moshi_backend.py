@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agent.messages import DialogueStep
-from agent.spec import ConditionSpec
+from core.messages import DialogueStep
+from core.spec import ConditionSpec
 from dialogue.config import DialogueConfig, MoshiConfig
 from dialogue.listener import ListeningBackend, STEP_S, UserListener
 from dialogue.local_backend import check_user_pcm, user_turn_from

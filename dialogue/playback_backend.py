@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.io.audio_file import load_audio
-from agent.messages import DialogueStep
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.audio_file import load_audio
+from core.messages import DialogueStep
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.alignment import recognize, words_from_transcript
 from dialogue.config import DialogueConfig
 from dialogue.listener import ListeningBackend, STEP_S, UserListener

@@ -5,8 +5,8 @@ from typing import Sequence
 
 import torch
 
-from agent.messages import AudioUser, Message
-from agent.stage import RunContext
+from core.messages import AudioUser, Message
+from core.component import RunContext
 from dialogue.backend import DialogueBackend, build_backend
 from dialogue.config import DialogueConfig
 

@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.text_vocab import word_token
 from dialogue.transcript import Transcript, Turn, Word
 from dialogue.tts import Utterance

@@ -19,7 +19,7 @@ from einops import rearrange
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 DEFAULT_CHECKPOINT = (Path(__file__).resolve().parents[1] / "checkpoints" / "speech_tokenizer"
                       / "speech_tokenizer.safetensors")

@@ -8,7 +8,7 @@ TTS's word maps to a valid id; collisions (rare for a conversational vocabulary)
 import hashlib
 import re
 
-from agent.spec import ConditionSpec
+from core.spec import ConditionSpec
 
 TEXT_VOCAB_SIZE = 8192
 SPEECH_CODE_BINS = 256

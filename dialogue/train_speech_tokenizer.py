@@ -18,7 +18,7 @@ import torch
 from einops import rearrange
 from scipy.signal import resample_poly
 
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, TokenizerShape
 from dialogue.tts import EspeakTts
 

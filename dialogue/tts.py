@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import resample_poly
 
-from agent.timing import SAMPLE_RATE_HZ
+from core.timing import SAMPLE_RATE_HZ
 
 ESPEAK_RATE_HZ = 22_050
 _RESAMPLE_UP, _RESAMPLE_DOWN = 160, 147  # 22050 * 160 / 147 = 24000

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from agent.messages import VadState
+from core.messages import VadState
 
 VAD_RATE_HZ = 16_000
 VAD_CHUNK_SAMPLES = 512  # 32 ms: the only size the 16 kHz model accepts

@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
 
-from agent.config import ConfigError
-from agent.spec import MOSHI_SPEC, ConditionSpec
+from core.config import ConfigError
+from core.spec import MOSHI_SPEC, ConditionSpec
 
 N_UPPER_LEVELS = 8
 N_LOWER_LEVELS = 8

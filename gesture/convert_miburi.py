@@ -33,8 +33,8 @@ import numpy as np
 import torch
 from safetensors import safe_open
 
-from agent.config import ConfigError
-from agent.timing import STEP_SAMPLES
+from core.config import ConfigError
+from core.timing import STEP_SAMPLES
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
 from gesture.config import GestureConfig, IdleGateConfig

@@ -22,7 +22,7 @@ from typing import Literal, Mapping, Optional
 import numpy as np
 import torch
 
-from agent.timing import FRAMES_PER_STEP, MOTION_FPS
+from core.timing import FRAMES_PER_STEP, MOTION_FPS
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder

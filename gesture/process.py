@@ -20,10 +20,10 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from agent.config import ConfigError
-from agent.messages import DialogueStep, GestureStep, Message
-from agent.stage import RunContext
-from agent.timing import MOTION_FPS, STEP_SAMPLES
+from core.config import ConfigError
+from core.messages import DialogueStep, GestureStep, Message
+from core.component import RunContext
+from core.timing import MOTION_FPS, STEP_SAMPLES
 from gesture.config import GestureConfig, MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm

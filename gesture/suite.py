@@ -36,7 +36,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from agent.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES  # noqa: E402
+from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES  # noqa: E402
 from gesture import metrics as M  # noqa: E402
 from gesture.codec.evaluation import reconstruct  # noqa: E402
 from gesture.codec.model import GestureCodec  # noqa: E402

@@ -30,7 +30,7 @@ import torch.distributed as dist  # noqa: E402
 from torch.nn.parallel import DistributedDataParallel as DDP  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from agent.config import ConfigError  # noqa: E402
+from core.config import ConfigError  # noqa: E402
 from gesture.codec.build import build_codec  # noqa: E402
 from gesture.codec.checkpoint import MODEL_FILE, load_optimizer, save_codec, save_optimizer  # noqa: E402
 from gesture.codec.config import REGIONS, CodecFileConfig, load_codec_config  # noqa: E402

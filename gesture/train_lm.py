@@ -21,7 +21,7 @@ from typing import Optional
 
 import torch
 
-from agent.config import ConfigError, build_dataclass, load_yaml
+from core.config import ConfigError, build_dataclass, load_yaml
 from gesture.config import LMConfig, LMFileConfig, LMTrainConfig
 from gesture.lm.checkpoint import load_lm, load_train_state, save_lm, save_train_state
 from gesture.lm.data import LMBatch, LMDataset

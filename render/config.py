@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, Optional
 
-from agent.config import ConfigError
+from core.config import ConfigError
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from pathlib import Path
 import av
 import numpy as np
 
-from agent.timing import MOTION_FPS, SAMPLE_RATE_HZ
+from core.timing import MOTION_FPS, SAMPLE_RATE_HZ
 
 
 class Mp4Error(RuntimeError):

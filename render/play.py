@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agent.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
+from core.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
 from render.renderer import CAMERA_PRESETS
 
 EXIT_USAGE = 2
@@ -51,7 +51,7 @@ def frame_audio(wav_path: str | Path | None, n_frames: int) -> np.ndarray:
     total = n_frames * FRAME_SAMPLES
     pcm = np.zeros(total, np.float32)
     if wav_path is not None:
-        from agent.io.audio_file import load_audio
+        from core.audio_file import load_audio
 
         speech = load_audio(wav_path, SAMPLE_RATE_HZ)[:total]
         pcm[:len(speech)] = speech
@@ -178,7 +178,7 @@ def check_inputs(args: argparse.Namespace) -> int:
     if args.start * MOTION_FPS >= len(poses):
         raise UsageError(f"--start {args.start}: the motion lasts {len(poses) / MOTION_FPS:.2f} s")
     if args.wav is not None:
-        from agent.io.audio_file import check_audio_file
+        from core.audio_file import check_audio_file
 
         check_audio_file(args.wav)  # decoded once, later; a decoding problem is caught there
     return len(poses)
@@ -204,7 +204,7 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from agent.io.audio_file import AudioFileError
+    from core.audio_file import AudioFileError
     from gesture.data.errors import DataError
     from render.body_model import BodyModelError
     from render.mp4 import Mp4Error, Mp4WriteError

@@ -19,9 +19,9 @@ from typing import Sequence
 
 import numpy as np
 
-from agent.messages import DialogueStep, GestureStep, Message, RenderFrame
-from agent.stage import RunContext, StageFailed
-from agent.timing import FRAME_SAMPLES, FRAMES_PER_STEP
+from core.messages import DialogueStep, GestureStep, Message, RenderFrame
+from core.component import RunContext, StageFailed
+from core.timing import FRAME_SAMPLES, FRAMES_PER_STEP
 from render.config import RenderConfig
 from render.mp4 import BackgroundMp4Writer, Mp4Writer, Mp4WriteError, mix_conversation
 from render.view import AvatarView, load_body

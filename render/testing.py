@@ -7,7 +7,7 @@ import av
 import numpy as np
 import pytest
 
-from agent.timing import MOTION_FPS
+from core.timing import MOTION_FPS
 from render.renderer import BACKGROUND_RGB
 
 BEAT2_NPZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"

@@ -14,9 +14,9 @@ from typing import Sequence
 
 import numpy as np
 
-from agent.messages import AudioUser, DialogueStep, GestureStep, Message, MsgpackSerializer, RenderFrame
-from agent.stage import RunContext
-from agent.timing import FRAMES_PER_STEP
+from core.messages import AudioUser, DialogueStep, GestureStep, Message, MsgpackSerializer, RenderFrame
+from core.component import RunContext
+from core.timing import FRAMES_PER_STEP
 
 KILL_AT_STEP = "TEST_KILL_AT_STEP"  # the stage's process SIGKILLs itself at this step
 CORRUPT_AT_STEP = "TEST_CORRUPT_AT_STEP"  # the dialogue stage sends one truncated frame at this step

@@ -6,10 +6,10 @@ import numpy as np
 import soundfile as sf
 from scipy.signal import resample_poly
 
-from agent.config import build_dataclass
-from agent.messages import AudioUser
-from agent.stage import RunContext
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.config import build_dataclass
+from core.messages import AudioUser
+from core.component import RunContext
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.config import DialogueConfig
 from dialogue.process import create_component
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from agent.io.audio_file import AudioFileError, load_audio
+from core.audio_file import AudioFileError, load_audio
 from agent.io.sources import NoAudioDevice, ReplaySource, check_input_device, split_steps
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -167,7 +167,7 @@ def test_a_truncated_wav_is_read_with_a_warning(tmp_path, caplog):
              subtype="PCM_16")  # 2 s
     cut = tmp_path / "cut.wav"
     cut.write_bytes(full.read_bytes()[:44 + 16000 * 2 // 2])  # the header and 0.5 s of samples
-    with caplog.at_level("WARNING", logger="agent.io.audio_file"):
+    with caplog.at_level("WARNING", logger="core.audio_file"):
         pcm = load_audio(cut, SAMPLE_RATE_HZ)
         load_audio(full, SAMPLE_RATE_HZ)
     assert abs(len(pcm) - SAMPLE_RATE_HZ // 2) <= 2
@@ -178,7 +178,7 @@ def test_a_truncated_wav_is_read_with_a_warning(tmp_path, caplog):
 def test_samples_beyond_full_scale_are_read_with_a_warning(tmp_path, caplog):
     loud = tmp_path / "loud.wav"
     sf.write(loud, np.array([0.5, 1.5, -2.0, 0.0] * 4000, np.float32), 16000, subtype="FLOAT")
-    with caplog.at_level("WARNING", logger="agent.io.audio_file"):
+    with caplog.at_level("WARNING", logger="core.audio_file"):
         load_audio(loud, SAMPLE_RATE_HZ)
     assert [r.getMessage() for r in caplog.records] == [
         f"{loud}: 8000 samples beyond ±1 full scale (peak 2.00); they clip when played or encoded"]

@@ -18,7 +18,7 @@ from gesture.data.errors import DataError
 from gesture.data.textgrid import parse_textgrid
 from gesture.regions import LOWER_VELOCITY_SLICE
 from gesture.rotation import axis_angle_to_matrix, yaw_of_matrix
-from agent.config import ConfigError
+from core.config import ConfigError
 from tests.data.beat2_clip import BEAT2_DIR, CLIP_ID, CLIP_NPZ, needs_clip
 
 torch.set_num_threads(1)

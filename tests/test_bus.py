@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import zmq
 
-from agent.bus import Publisher, Subscriber, stage_address
+from core.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
 from agent.latency import LatencyRecorder, format_table
-from agent.messages import AudioUser, Command, Control, Metrics
-from agent.sections import BusConfig
+from core.messages import AudioUser, Command, Control, Metrics
+from core.bus import BusConfig
 
 
 @pytest.fixture

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from agent.config import ConfigError
+from core.config import ConfigError
 from gesture.codec.build import build_codec, count_parameters
 from gesture.codec.config import CodecConfig, RegionSizes, codec_file_config_from_dict, load_codec_config
 from gesture.codec.streaming import StreamingDecoder, StreamingEncoder

@@ -8,7 +8,7 @@ import pytest
 import torch
 import yaml
 
-from agent.config import ConfigError
+from core.config import ConfigError
 from gesture.codec.checkpoint import load_codec
 from gesture.codec.config import CodecTrainConfig
 from gesture.codec.data import load_motion_splits

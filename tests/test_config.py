@@ -3,7 +3,7 @@ from typing import Literal, Optional
 
 import pytest
 
-from agent.config import ConfigError, build_dataclass
+from core.config import ConfigError, build_dataclass
 from agent.sections import AppConfig, load_app_config
 
 

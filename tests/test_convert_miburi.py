@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 
-from agent.config import ConfigError
-from agent.spec import ConditionSpec
+from core.config import ConfigError
+from core.spec import ConditionSpec
 from gesture.codec.checkpoint import load_codec
 from gesture.convert_miburi import convert_release, main, release_gesture_config
 from gesture.lm.checkpoint import load_lm

@@ -13,9 +13,9 @@ import soundfile as sf
 
 pytest.importorskip("moshi")
 
-from agent.messages import AudioUser, GestureStep  # noqa: E402
+from core.messages import AudioUser, GestureStep  # noqa: E402
 from agent.sections import load_app_config  # noqa: E402
-from agent.stage import RunContext  # noqa: E402
+from core.component import RunContext  # noqa: E402
 from dialogue.process import create_component as create_dialogue  # noqa: E402
 from gesture.process import create_component as create_gesture  # noqa: E402
 from gesture.convert_miburi import convert_release  # noqa: E402

@@ -19,7 +19,7 @@ import pytest
 import soundfile as sf
 from PIL import Image
 
-from agent.config import ConfigError, build_dataclass
+from core.config import ConfigError, build_dataclass
 from agent.dashboard.browser import HeadlessChromium, find_chromium
 from agent.dashboard.config import DashboardConfig
 from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER, BINARY_MIC, LatencyMeter, RunState,
@@ -27,9 +27,9 @@ from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER
 from agent.dashboard.mic import MAX_BUFFER_STEPS, PRIME_STEPS, BrowserMicSource, MicRelay
 from agent.dashboard.process import page_url
 from agent.dashboard.server import Hub, make_app, start_server
-from agent.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
+from core.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
 from agent.sections import load_app_config
-from agent.timing import STEP_SAMPLES
+from core.timing import STEP_SAMPLES
 from tests.test_runtime import finish, launch, leftovers
 
 PIPELINE = ("io", "dialogue", "gesture", "render")

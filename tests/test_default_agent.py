@@ -14,7 +14,7 @@ import soundfile as sf
 import torch
 
 from agent.sections import load_app_config
-from agent.timing import SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
+from core.timing import SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer
 from dialogue.text_vocab import LOCAL_SPEC, word_token
 from gesture.data.audio import load_audio

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from agent.messages import DialogueStep, VadState
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.messages import DialogueStep, VadState
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.text_vocab import LOCAL_SPEC, word_token
 from tests.dialogue_helpers import BEAT2_WAV, LIBRIVOX, blocks, dialogue_cfg, load_24k, run_component, silence
 
@@ -106,8 +106,8 @@ def room_impulse_response() -> np.ndarray:
 
 def converse_with_echo(echo_mode: str, run_dir, user=None, echo_gain=0.5):
     """Loudspeakers: the mic hears the user plus the agent's own output (0.2 s later, reverberated)."""
-    from agent.messages import AudioUser
-    from agent.stage import RunContext
+    from core.messages import AudioUser
+    from core.component import RunContext
     from dialogue.process import create_component
 
     comp = create_component(dialogue_cfg(echo={"mode": echo_mode}), RunContext(run_dir, False, 0, "e"))
@@ -174,8 +174,8 @@ def test_clipped_speech_is_still_understood_and_answered(gain, min_known_words, 
 
 
 def test_non_finite_and_wrong_sized_input(tmp_path):
-    from agent.messages import AudioUser
-    from agent.stage import RunContext
+    from core.messages import AudioUser
+    from core.component import RunContext
     from dialogue.process import create_component
 
     comp = create_component(dialogue_cfg(), RunContext(tmp_path, False, 0, "x"))
@@ -202,8 +202,8 @@ def test_dropped_input_steps_keep_transcript_times_true(tmp_path):
     """Live mode may drop audio.user steps: times after the gap still follow the message step numbers."""
     import json
 
-    from agent.messages import AudioUser
-    from agent.stage import RunContext
+    from core.messages import AudioUser
+    from core.component import RunContext
     from dialogue.process import create_component
 
     comp = create_component(dialogue_cfg(), RunContext(tmp_path, True, 0, "live"))

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.io.audio_file import load_audio
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.audio_file import load_audio
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.config import ConfigError
 from dialogue.text_vocab import word_token
 from tests.dialogue_helpers import BEAT2_WAV, LIBRIVOX, dialogue_cfg, load_24k, run_component, silence

@@ -1,6 +1,6 @@
 """The local text vocabulary: hashed words, pinned ids, and the condition spec it defines."""
 
-from agent.spec import ConditionSpec
+from core.spec import ConditionSpec
 from dialogue.text_vocab import LOCAL_SPEC, TEXT_VOCAB_SIZE, normalize_word, word_token
 
 

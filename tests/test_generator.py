@@ -148,7 +148,7 @@ def test_soak_memory_stays_flat():
     import os
     import resource
 
-    from agent.config import build_dataclass, load_yaml
+    from core.config import build_dataclass, load_yaml
     from gesture.codec.build import build_codec
     from gesture.codec.config import load_codec_config
     from gesture.config import LMFileConfig

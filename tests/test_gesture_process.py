@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from agent.config import ConfigError
-from agent.messages import DialogueStep, GestureStep
-from agent.spec import MOSHI_SPEC, SpecMismatchError
-from agent.stage import RunContext
+from core.config import ConfigError
+from core.messages import DialogueStep, GestureStep
+from core.spec import MOSHI_SPEC, SpecMismatchError
+from core.component import RunContext
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
 from gesture.config import GestureConfig

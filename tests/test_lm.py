@@ -5,8 +5,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from agent.config import ConfigError
-from agent.spec import MOSHI_SPEC, ConditionSpec, SpecMismatchError
+from core.config import ConfigError
+from core.spec import MOSHI_SPEC, ConditionSpec, SpecMismatchError
 from gesture.config import LMConfig
 from gesture.lm.checkpoint import load_lm, save_lm
 from gesture.lm.fixtures import TINY_SPEC, tiny_lm

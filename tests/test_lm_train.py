@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from agent.config import ConfigError
+from core.config import ConfigError
 from gesture.config import LMFileConfig, LMTrainConfig
 from gesture.lm.data import LMDataset, write_recording, write_spec
 from gesture.lm.fixtures import TINY_SPEC, tiny_lm_config
@@ -103,7 +103,7 @@ def test_short_training_learns_and_resumes(tmp_path):
 
 
 def test_dataset_rejects_a_foreign_spec_and_bad_files(tmp_path):
-    from agent.spec import MOSHI_SPEC, SpecMismatchError
+    from core.spec import MOSHI_SPEC, SpecMismatchError
     data = _dataset(tmp_path)
     with pytest.raises(SpecMismatchError):
         LMDataset(data, 20, MOSHI_SPEC)
@@ -119,7 +119,7 @@ def test_train_config_rejects_bad_values():
 
 @pytest.mark.slow
 def test_cli_trains_the_small_config(tmp_path):
-    from agent.spec import ConditionSpec
+    from core.spec import ConditionSpec
     data = _dataset(tmp_path, steps=120, spec=ConditionSpec("local-v1", 8192, 256, 256))
     main(["--config", "configs/lm/small.yaml", "--data", str(data), "--out", str(tmp_path / "out"),
           "--epochs", "2", "--no-progress"])

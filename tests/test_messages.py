@@ -2,7 +2,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from agent.messages import (AudioUser, Command, Control, DecodeError, DialogueStep, GestureStep, Log, Metrics,
+from core.messages import (AudioUser, Command, Control, DecodeError, DialogueStep, GestureStep, Log, Metrics,
                             MsgpackSerializer, RenderFrame, VadState)
 
 SER = MsgpackSerializer()

@@ -9,11 +9,11 @@ import torch
 pytest.importorskip("moshi")
 pytest.importorskip("sentencepiece")
 
-from agent.config import build_dataclass  # noqa: E402
-from agent.messages import AudioUser, DialogueStep  # noqa: E402
-from agent.spec import MOSHI_SPEC  # noqa: E402
-from agent.stage import RunContext  # noqa: E402
-from agent.timing import STEP_SAMPLES  # noqa: E402
+from core.config import build_dataclass  # noqa: E402
+from core.messages import AudioUser, DialogueStep  # noqa: E402
+from core.spec import MOSHI_SPEC  # noqa: E402
+from core.component import RunContext  # noqa: E402
+from core.timing import STEP_SAMPLES  # noqa: E402
 from dialogue.config import DialogueConfig  # noqa: E402
 from dialogue.moshi_backend import MoshiWeightsError, moshi_spec  # noqa: E402
 from dialogue.process import create_component  # noqa: E402

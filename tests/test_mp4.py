@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from agent.messages import DialogueStep, GestureStep
-from agent.stage import RunContext
-from agent.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.messages import DialogueStep, GestureStep
+from core.component import RunContext
+from core.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
 from render.config import RenderConfig
 from render.mp4 import BackgroundMp4Writer, Mp4Error, Mp4Writer
 from render.testing import (BEAT2_NPZ, BEAT2_WAV, check_av_sync, decode, needs_beat2, needs_osmesa, silhouette,

@@ -23,7 +23,7 @@ import pytest
 import soundfile as sf
 import yaml
 
-from agent.messages import DialogueStep, GestureStep, Message
+from core.messages import DialogueStep, GestureStep, Message
 from agent.sections import RunConfig
 from agent.supervisor import remove_dead_runs_ipc_dirs
 from tests import components

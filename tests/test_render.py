@@ -124,7 +124,7 @@ def test_egl_platform_renders_or_is_reported_unavailable():
 
 
 def test_render_config_errors_name_the_option():
-    from agent.config import ConfigError, build_dataclass
+    from core.config import ConfigError, build_dataclass
     from render.config import RenderConfig
 
     with pytest.raises(ConfigError, match=r"^render\.size: must be an even"):

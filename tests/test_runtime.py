@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from agent.timing import STEP_SAMPLES, SAMPLE_RATE_HZ
+from core.timing import STEP_SAMPLES, SAMPLE_RATE_HZ
 from tests import components
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,7 +7,7 @@ import pytest
 import soundfile as sf
 import torch
 
-from agent.config import ConfigError
+from core.config import ConfigError
 from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig

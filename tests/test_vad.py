@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from agent.messages import VadState
+from core.messages import VadState
 from dialogue.config import ConfigError
 from dialogue.resample import StreamResampler
 from dialogue.vad import VAD_CHUNK_S, SileroVad, VadStateMachine

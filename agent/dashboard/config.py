@@ -6,7 +6,7 @@ import ipaddress
 from dataclasses import dataclass
 from typing import Optional
 
-from agent.config import ConfigError
+from core.config import ConfigError
 
 LOOPBACK_NAMES = ("localhost",)
 

@@ -16,8 +16,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from agent.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
-from agent.timing import FRAMES_PER_STEP, SAMPLE_RATE_HZ
+from core.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
+from core.timing import FRAMES_PER_STEP, SAMPLE_RATE_HZ
 
 NS_PER_MS = 1e6
 MAX_WORDS_PER_TURN = 400  # a longer turn keeps its last words

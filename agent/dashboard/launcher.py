@@ -13,11 +13,11 @@ import multiprocessing as mp
 from pathlib import Path
 from typing import Optional
 
-from agent.bus import stage_address
+from core.bus import stage_address
 from agent.dashboard.process import DASHBOARD, DashboardLaunch, dashboard_main, page_url
-from agent.messages import Command, Control
+from core.messages import Command, Control
 from agent.sections import AppConfig
-from agent.stage import RunContext
+from core.component import RunContext
 
 log = logging.getLogger(DASHBOARD)
 

@@ -17,8 +17,8 @@ from typing import Optional
 import numpy as np
 import zmq
 
-from agent.stage import RunContext
-from agent.timing import STEP_NS, STEP_SAMPLES
+from core.component import RunContext
+from core.timing import STEP_NS, STEP_SAMPLES
 
 ADDRESS_FILE = "browser_mic.addr"
 TOPIC = b"mic"

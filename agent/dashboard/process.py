@@ -19,14 +19,15 @@ from pathlib import Path
 
 import zmq
 
-from agent.bus import Publisher, Subscriber, stage_address
+from core.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
 from agent.dashboard.events import (BINARY_AUDIO, BINARY_FRAME, LatencyMeter, RunState, Transcript, frame_jpeg,
                                     hello_event, pack_binary, pcm_int16, vad_event)
 from agent.dashboard.mic import MicRelay
-from agent.messages import Command, Control, DialogueStep, Message, Metrics, RenderFrame
+from core.messages import Command, Control, DialogueStep, Message, Metrics, RenderFrame
 from agent.sections import AppConfig
-from agent.stage import SUPERVISOR, RunContext
+from agent.stage import SUPERVISOR
+from core.component import RunContext
 
 log = logging.getLogger("dashboard")
 

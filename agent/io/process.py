@@ -6,9 +6,9 @@ from typing import Optional, Sequence
 
 from agent.io.sources import MicSource, ReplaySource
 from agent.io.speaker import Speaker
-from agent.messages import DialogueStep, Message
+from core.messages import DialogueStep, Message
 from agent.sections import IoConfig
-from agent.stage import RunContext
+from core.component import RunContext
 
 
 class IoComponent:

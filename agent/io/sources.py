@@ -8,8 +8,8 @@ from typing import Optional
 
 import numpy as np
 
-from agent.io.audio_file import load_audio
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.audio_file import load_audio
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 
 class NoAudioDevice(RuntimeError):

@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from agent.io.sources import _sounddevice
-from agent.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 MAX_BUFFER_STEPS = 8  # 640 ms: beyond this the oldest audio is dropped to stay live
 

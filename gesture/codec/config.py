@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from agent.config import ConfigError, build_dataclass, load_yaml
+from core.config import ConfigError, build_dataclass, load_yaml
 
 REGIONS = ("upper", "lower", "face")
 

@@ -15,7 +15,7 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from agent.timing import MOTION_FPS
+from core.timing import MOTION_FPS
 from gesture import metrics as M
 from gesture.codec.build import build_codec
 from gesture.codec.config import REGIONS, CodecConfig

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from agent.timing import FRAMES_PER_STEP
+from core.timing import FRAMES_PER_STEP
 from gesture.codec.model import GestureCodec
 from gesture.nn import StreamingModule
 

@@ -43,7 +43,7 @@ import soundfile as sf  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from agent.config import ConfigError  # noqa: E402
+from core.config import ConfigError  # noqa: E402
 from gesture.data.synth.agent import AgentMotion, synthesize_agent_motion  # noqa: E402
 from gesture.data.synth.config import SynthConfig, load_synth_config  # noqa: E402
 from gesture.data.synth.conversation import AGENT, USER, Conversation, Turn, build_conversation  # noqa: E402

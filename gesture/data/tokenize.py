@@ -35,8 +35,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from agent.spec import ConditionSpec  # noqa: E402
-from agent.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES  # noqa: E402
+from core.spec import ConditionSpec  # noqa: E402
+from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES  # noqa: E402
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer  # noqa: E402
 from dialogue.text_vocab import LOCAL_SPEC, word_token  # noqa: E402
 from gesture.codec.model import GestureCodec  # noqa: E402

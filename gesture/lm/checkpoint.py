@@ -11,8 +11,8 @@ from typing import Optional
 import torch
 from safetensors.torch import load_file, save_file
 
-from agent.config import build_dataclass
-from agent.spec import ConditionSpec
+from core.config import build_dataclass
+from core.spec import ConditionSpec
 from gesture.config import LMConfig
 from gesture.lm.model import GestureLM
 

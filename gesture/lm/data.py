@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agent.spec import ConditionSpec
+from core.spec import ConditionSpec
 
 SPEC_FILE = "spec.json"
 REQUIRED_KEYS = ("gesture_tokens", "text_tokens", "audio_codes", "vad", "speaker")

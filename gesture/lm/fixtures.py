@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from agent.spec import ConditionSpec
+from core.spec import ConditionSpec
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecConfig, RegionSizes
 from gesture.codec.model import GestureCodec

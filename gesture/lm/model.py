@@ -18,7 +18,7 @@ from typing import Optional
 import torch
 from torch import nn
 
-from agent.spec import ConditionSpec
+from core.spec import ConditionSpec
 from gesture.config import LMConfig
 from gesture.lm.embeddings import GestureEmbedding, check_token_range, embed_or_zero
 from gesture.lm.layers import LAYER_NORM_EPS, DepthLayer, TemporalLayer

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from agent.spec import ConditionSpec
+from core.spec import ConditionSpec
 from gesture.config import LMConfig
 from gesture.lm.model import GestureLM
 from gesture.release.codecs import codebook_vectors

@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Mapping
 
-from agent.config import ConfigError
+from core.config import ConfigError
 from gesture.lm.checkpoint import read_meta
 
 SPEAKERS_FILE = "speakers.json"

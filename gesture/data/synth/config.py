@@ -8,7 +8,7 @@ from typing import Any, Mapping, Optional
 
 import yaml
 
-from agent.config import ConfigError, build_dataclass
+from core.config import ConfigError, build_dataclass
 from gesture.regions import MOTION_FPS
 
 GESTURE_FAMILIES = ("beat", "presentation", "deictic", "size", "adaptor")

@@ -18,7 +18,7 @@ from math import gcd
 import numpy as np
 from scipy.signal import resample_poly
 
-from agent.timing import SAMPLE_RATE_HZ as TTS_SAMPLE_RATE_HZ
+from core.timing import SAMPLE_RATE_HZ as TTS_SAMPLE_RATE_HZ
 from dialogue.tts import EspeakTts
 from gesture.data.synth.config import SynthConfig
 from gesture.data.synth.sentences import SentenceGenerator

@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Protocol, Sequence
 import msgpack
 import numpy as np
 
-from agent.timing import FRAMES_PER_STEP, STEP_SAMPLES
+from core.timing import FRAMES_PER_STEP, STEP_SAMPLES
 
 SCHEMA_VERSION = 1
 N_JOINTS = 55

@@ -1,0 +1,51 @@
+"""What a stage's component sees of the run, and what it must provide: the contract between the stage runner
+(`agent.stage`) and the model packages that plug into it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Protocol, Sequence
+
+import numpy as np
+
+from core.messages import Message
+
+
+class StageFailed(RuntimeError):
+    """Raised by a component's handler when no later message can succeed (e.g. its output cannot be written).
+
+    The message is one line naming what failed, e.g. "cannot write out.mp4: [Errno 28] No space left on device".
+    """
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """What a component may know about the run."""
+
+    run_dir: Path
+    live: bool
+    seed: int
+    session: str
+
+
+class Component(Protocol):
+    def handle(self, msg: Message) -> Sequence[Message]: ...
+
+    def flush(self) -> Sequence[Message]: ...
+
+    def close(self) -> None: ...
+
+
+class Source(Protocol):
+    """Blocks of user audio. `paced` sources (a microphone) deliver in real time by themselves."""
+
+    paced: bool
+
+    def next_block(self, timeout_s: float) -> Optional[tuple[np.ndarray, Optional[int]]]:
+        """(pcm (1920,) float32, capture time of its last sample in monotonic ns or None); None when waiting."""
+
+    @property
+    def exhausted(self) -> bool: ...
+
+    def close(self) -> None: ...
