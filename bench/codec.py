@@ -32,10 +32,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench.machine import (BaselineMatmul, machine_report, memory_read_bandwidth_gbps,  # noqa: E402
-                           percentiles_ms, read_floor_ms)
+from bench.machine import BaselineMatmul, machine_report, memory_read_bandwidth_gbps, percentiles_ms, read_floor_ms
+from core.body import REGIONS  # noqa: E402
 from gesture.codec.build import build_codec, count_parameters  # noqa: E402
-from gesture.codec.config import REGIONS, load_codec_config  # noqa: E402
+from gesture.codec.config import load_codec_config  # noqa: E402
 from gesture.codec.inference import INFERENCE_DTYPES, inference_codec  # noqa: E402
 from gesture.codec.streaming import StreamingDecoder  # noqa: E402
 from gesture.nn.weights import kernels_used, stored_weights  # noqa: E402
@@ -106,7 +106,7 @@ def bench(sizes: list[str], dtypes: list[str], prepared: list[str], steps: int, 
 
 def quality(dtypes: list[str]) -> dict:
     """Feature error on random codes at the reference size; MPJPE of the BEAT2 clip with the shipped codecs."""
-    from gesture.codec.inference_quality import clip_mpjpe_mm, random_codes_error
+    from gesture.eval.codec_inference import clip_mpjpe_mm, random_codes_error
     from gesture.lm.codecs import load_codecs
 
     reference = load_codec_config(CONFIG_DIR / "reference.yaml").codec

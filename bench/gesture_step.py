@@ -31,15 +31,15 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # an entry point: before num
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from bench.machine import BaselineMatmul, machine_report, memory_read_bandwidth_gbps, percentiles_ms, read_floor_ms
+from core.body import REGIONS  # noqa: E402
 from core.config import build_dataclass, load_yaml  # noqa: E402
 from core.spec import MOSHI_SPEC, ConditionSpec  # noqa: E402
 from core.timing import STEP_MS  # noqa: E402
-from bench.machine import (BaselineMatmul, machine_report, memory_read_bandwidth_gbps,  # noqa: E402
-                           percentiles_ms, read_floor_ms)
 from gesture.codec.build import build_codec  # noqa: E402
 from gesture.codec.config import CodecConfig, load_codec_config  # noqa: E402
-from gesture.config import LMConfig, LMFileConfig  # noqa: E402
-from gesture.generator import REGIONS, GestureGenerator  # noqa: E402
+from gesture.generator import GestureGenerator  # noqa: E402
+from gesture.lm.config import LMConfig, LMFileConfig  # noqa: E402
 from gesture.lm.model import GestureLM  # noqa: E402
 from gesture.nn.weights import kernels_used, stored_weights  # noqa: E402
 

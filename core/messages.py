@@ -17,11 +17,10 @@ from typing import Any, ClassVar, Protocol, Sequence
 import msgpack
 import numpy as np
 
+from core.body import NUM_EXPRESSIONS, NUM_JOINTS
 from core.timing import FRAMES_PER_STEP, STEP_SAMPLES
 
 SCHEMA_VERSION = 1
-N_JOINTS = 55
-N_EXPRESSIONS = 100
 N_GESTURE_TOKENS = 20
 N_SPEECH_CODES = 8
 
@@ -114,9 +113,9 @@ class DialogueStep(Message):
 @dataclass
 class GestureStep(Message):
     KIND: ClassVar[Kind] = Kind.GESTURE_STEP
-    poses: np.ndarray = array_field("float32", (FRAMES_PER_STEP, N_JOINTS, 3))  # axis-angle, SMPL-X order
+    poses: np.ndarray = array_field("float32", (FRAMES_PER_STEP, NUM_JOINTS, 3))  # axis-angle, SMPL-X order
     trans: np.ndarray = array_field("float32", (FRAMES_PER_STEP, 3))
-    expressions: np.ndarray = array_field("float32", (FRAMES_PER_STEP, N_EXPRESSIONS))
+    expressions: np.ndarray = array_field("float32", (FRAMES_PER_STEP, NUM_EXPRESSIONS))
     tokens: np.ndarray = array_field("int32", (N_GESTURE_TOKENS,))
     va_prob: float = float("nan")
 

@@ -22,7 +22,9 @@ from typing import Literal, Mapping, Optional
 import numpy as np
 import torch
 
+from core.body import REGIONS
 from core.timing import FRAMES_PER_STEP, MOTION_FPS
+from gesture.body.regions import LOWER_VELOCITY_SLICE, features_to_motion
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
@@ -32,9 +34,6 @@ from gesture.lm.naive import NaiveStepper
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
 from gesture.micro_motion import MicroMotion, is_speaking
-from gesture.regions import LOWER_VELOCITY_SLICE, features_to_motion
-
-REGIONS = ("upper", "lower", "face")
 
 
 @dataclass

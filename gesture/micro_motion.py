@@ -7,7 +7,7 @@ explains none of the spine, neck, head and collar rotations (R^2 <= 0.05 on held
 nor warm starts changed that within 4000 steps; so the decoded agent held those joints still 3x as often as the
 real speaker (the README's realism section).
 
-The layer adds the micro-motion model of the synthetic training data (`gesture.data.synth`, calibration.json
+The layer adds the micro-motion model of the synthetic training data (`gesture.synth`, calibration.json
 ``micro_motion``, fitted on the real BEAT2 clip): per joint and axis, low-passed Gaussian noise of the fitted
 standard deviation and cutoff, times a slow log-normal gate per body part, calmer while the agent listens, softly
 limited to 2.5 standard deviations (the wrists' fitted deviations are large: unlimited, rare peaks bent them past
@@ -23,12 +23,11 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from gesture.data.synth.agent import (MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_LISTENING,
-                                      MICRO_PARTS)
-from gesture.data.synth.calibration import load_calibration
-from gesture.data.synth.face import BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S
-from gesture.data.synth.tracks import bump
-from gesture.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from gesture.synth.agent import MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_LISTENING, MICRO_PARTS
+from gesture.synth.calibration import load_calibration
+from gesture.synth.face import BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S
+from gesture.synth.tracks import bump
 
 FILTER_POLES = 4
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
@@ -62,7 +61,7 @@ def speed_ratio(response: np.ndarray) -> np.ndarray:
 
 
 def _gaussian_kernel(cutoff_hz: float, fps: float) -> np.ndarray:
-    sigma = fps / (2 * np.pi * cutoff_hz)  # as gesture.data.synth.tracks.smooth_noise
+    sigma = fps / (2 * np.pi * cutoff_hz)  # as gesture.synth.tracks.smooth_noise
     t = np.arange(-int(6 * sigma) - 1, int(6 * sigma) + 2)
     return np.exp(-0.5 * (t / sigma) ** 2)
 

@@ -1,6 +1,6 @@
 """The built-in avatar: a stylised mannequin in SMPL-X topology that needs no licensed file.
 
-It is built on THE shared skeleton (`gesture.skeleton.Skeleton`): every part is placed at the skeleton's rest
+It is built on THE shared skeleton (`gesture.body.skeleton.Skeleton`): every part is placed at the skeleton's rest
 joints (T-pose, y up, facing +z) and skinned to its 55 joints, so BEAT2/SMPL-X poses apply unchanged.
 
 Parts: a smoothly skinned torso (pelvis, spine, collars), a neck, a head with an opening jaw (the lower face
@@ -35,12 +35,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from gesture.skeleton import JOINT_NAMES, Skeleton
+from core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from gesture.body.skeleton import JOINT_NAMES, Skeleton
 from render.body_model import BodyModel
 from render.mesh_parts import Part, capsule, ellipsoid, loft, mirror_part, rigid_part, ring_faces, smoothstep
 
-N_JOINTS = 55
-N_EXPRESSIONS = 100
 J = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 SKIN = (0.95, 0.79, 0.67)
@@ -60,7 +59,7 @@ SEMANTIC_SHAPES = ("smile", "brow_raise", "blink", "mouth_wide", "pucker", "lips
 
 def _expression_map() -> np.ndarray:
     """(6, 100) linear map from FLAME expression coefficients to the semantic shapes (see the module table)."""
-    m = np.zeros((len(SEMANTIC_SHAPES), N_EXPRESSIONS))
+    m = np.zeros((len(SEMANTIC_SHAPES), NUM_EXPRESSIONS))
     rows = {
         "smile": {0: 0.9, 2: 0.6},
         "brow_raise": {2: 1.2, 6: 0.8},
@@ -154,7 +153,7 @@ def _head() -> Part:
     ramp = smoothstep(0.0, 0.025, depth)
     jaw_share = lowerness * (lens * (1 - ramp) + chin * ramp)
 
-    weights = np.zeros((len(vertices), N_JOINTS))
+    weights = np.zeros((len(vertices), NUM_JOINTS))
     weights[:, J["jaw"]] = jaw_share
     weights[:, J["head"]] = 1.0 - jaw_share
 
@@ -194,7 +193,7 @@ def _hair() -> Part:
     b0 = (n_rows - 1) * around
     faces.append(np.stack([b0 + s, b0 + s1, np.full(around, top)], 1))
     faces = np.concatenate(faces)
-    return rigid_part("hair", vertices, faces[:, ::-1].copy(), J["head"], N_JOINTS, HAIR)
+    return rigid_part("hair", vertices, faces[:, ::-1].copy(), J["head"], NUM_JOINTS, HAIR)
 
 
 def _eye(side: int) -> Part:
@@ -206,7 +205,7 @@ def _eye(side: int) -> Part:
     vertices, faces = ellipsoid(center, np.array([0.0085, 0.0052, 0.0115]), 16, 8,
                                 axes=np.stack([axes[0], axes[2], axes[1]]))
     joint = J["left_eye_smplhf"] if side > 0 else J["right_eye_smplhf"]
-    part = rigid_part("eye", vertices, faces, joint, N_JOINTS, EYES)
+    part = rigid_part("eye", vertices, faces, joint, NUM_JOINTS, EYES)
     part.attributes["eye_center"] = np.tile(center, (len(vertices), 1))
     return part
 
@@ -217,7 +216,7 @@ def _brow(side: int) -> Part:
     for p in (inner, outer):
         p[2] = head_front_z(p[0], p[1]) + 0.0008
     vertices, faces = capsule(inner, outer, 0.0042, 0.0032, 10, 3, 4, flatten=0.7, hint=np.array([0, 0, 1.0]))
-    part = rigid_part("brow", vertices, faces, J["head"], N_JOINTS, BROWS)
+    part = rigid_part("brow", vertices, faces, J["head"], NUM_JOINTS, BROWS)
     part.attributes["brow"] = np.ones(len(vertices))
     return part
 
@@ -226,14 +225,14 @@ def _nose() -> Part:
     center = np.array([0.0, 0.287, head_front_z(0.0, 0.287) + 0.001])
     vertices, faces = ellipsoid(center, np.array([0.011, 0.013, 0.019]), 16, 8,
                                 axes=np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]))
-    return rigid_part("nose", vertices, faces, J["head"], N_JOINTS, tuple(0.97 * np.asarray(SKIN)))
+    return rigid_part("nose", vertices, faces, J["head"], NUM_JOINTS, tuple(0.97 * np.asarray(SKIN)))
 
 
 def _ear(side: int) -> Part:
     center = np.array([side * 0.075, 0.300, -0.010])
     vertices, faces = ellipsoid(center, np.array([0.008, 0.014, 0.021]), 12, 6,
                                 axes=np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]))
-    return rigid_part("ear", vertices, faces, J["head"], N_JOINTS, SKIN)
+    return rigid_part("ear", vertices, faces, J["head"], NUM_JOINTS, SKIN)
 
 
 # ---------------------------------------------------------------- body
@@ -267,7 +266,7 @@ def _torso() -> Part:
     vertices, faces = loft(centers, profile[1], profile[2], np.array([1.0, 0, 0]), np.array([0, 0, 1.0]), 48,
                            exponent=2.3)
     y, ax = vertices[:, 1], np.abs(vertices[:, 0])
-    weights = np.zeros((len(vertices), N_JOINTS))
+    weights = np.zeros((len(vertices), NUM_JOINTS))
     key_y = np.array([k[1] for k in _SPINE_KEYS])
     for k, (name, _) in enumerate(_SPINE_KEYS):
         hat = np.zeros(len(key_y))
@@ -291,7 +290,7 @@ def _neck() -> Part:
     top = np.array([0.0, 0.250, 0.004])
     vertices, faces = capsule(base, top, 0.050, 0.045, 24, 4, 8, hint=np.array([0, 0, 1.0]))
     t = np.clip((vertices[:, 1] - base[1]) / (top[1] - base[1]), 0, 1)
-    weights = np.zeros((len(vertices), N_JOINTS))
+    weights = np.zeros((len(vertices), NUM_JOINTS))
     weights[:, J["spine3"]] = 1 - smoothstep(0.0, 0.45, t)
     weights[:, J["head"]] = smoothstep(0.6, 1.0, t)
     weights[:, J["neck"]] = 1 - weights[:, J["spine3"]] - weights[:, J["head"]]
@@ -302,11 +301,11 @@ def _left_arm(rest: np.ndarray) -> list[Part]:
     shoulder, elbow, wrist = rest[J["left_shoulder"]], rest[J["left_elbow"]], rest[J["left_wrist"]]
     parts = []
     v, f = capsule(shoulder, elbow, 0.050, 0.041, 20, 5, 8)  # its round top is the shoulder ball
-    parts.append(rigid_part("upper_arm", v, f, J["left_shoulder"], N_JOINTS, SHIRT))
+    parts.append(rigid_part("upper_arm", v, f, J["left_shoulder"], NUM_JOINTS, SHIRT))
     v, f = ellipsoid(elbow, np.array([0.040, 0.040, 0.040]), 16, 8)
-    parts.append(rigid_part("elbow", v, f, J["left_elbow"], N_JOINTS, SKIN))
+    parts.append(rigid_part("elbow", v, f, J["left_elbow"], NUM_JOINTS, SKIN))
     v, f = capsule(elbow, wrist, 0.038, 0.027, 18, 4, 8, flatten=0.85)
-    parts.append(rigid_part("forearm", v, f, J["left_elbow"], N_JOINTS, SKIN))
+    parts.append(rigid_part("forearm", v, f, J["left_elbow"], NUM_JOINTS, SKIN))
     return parts
 
 
@@ -328,7 +327,7 @@ def _left_hand(rest: np.ndarray) -> list[Part]:
         (xs - wrist[0]) / 0.05, 0, 1)], 1)
     v, f = loft(centers, half_width * (z_hi - z_lo) / 0.066, half_thick, np.array([0, 0, 1.0]),
                 np.array([0, 1.0, 0]), 20, exponent=3.0)
-    parts = [rigid_part("palm", v, f, J["left_wrist"], N_JOINTS, SKIN)]
+    parts = [rigid_part("palm", v, f, J["left_wrist"], NUM_JOINTS, SKIN)]
     for finger in ("index", "middle", "ring", "pinky", "thumb"):
         joints = [rest[J[f"left_{finger}{k}"]] for k in (1, 2, 3)]
         direction = (joints[2] - joints[1]) / np.linalg.norm(joints[2] - joints[1])
@@ -338,7 +337,7 @@ def _left_hand(rest: np.ndarray) -> list[Part]:
             r0, r1 = radius * (1 - 0.07 * k), radius * (1 - 0.07 * (k + 1))
             start = ends[k] if not (finger == "thumb" and k == 0) else ends[0]
             v, f = capsule(start, ends[k + 1], r0, r1, 10, 3, 2, flatten=0.85)
-            parts.append(rigid_part(f"{finger}{k + 1}", v, f, J[f"left_{finger}{k + 1}"], N_JOINTS, SKIN))
+            parts.append(rigid_part(f"{finger}{k + 1}", v, f, J[f"left_{finger}{k + 1}"], NUM_JOINTS, SKIN))
     return parts
 
 
@@ -346,11 +345,11 @@ def _left_leg(rest: np.ndarray) -> list[Part]:
     hip, knee, ankle, toe = (rest[J[n]] for n in ("left_hip", "left_knee", "left_ankle", "left_foot"))
     parts = []
     v, f = capsule(hip + np.array([0.02, 0.03, 0.0]), knee, 0.084, 0.053, 22, 4, 10)
-    parts.append(rigid_part("thigh", v, f, J["left_hip"], N_JOINTS, TROUSERS))
+    parts.append(rigid_part("thigh", v, f, J["left_hip"], NUM_JOINTS, TROUSERS))
     v, f = ellipsoid(knee, np.array([0.052, 0.052, 0.052]), 16, 8)
-    parts.append(rigid_part("knee", v, f, J["left_knee"], N_JOINTS, TROUSERS))
+    parts.append(rigid_part("knee", v, f, J["left_knee"], NUM_JOINTS, TROUSERS))
     v, f = capsule(knee, ankle, 0.050, 0.034, 20, 4, 10)
-    parts.append(rigid_part("shin", v, f, J["left_knee"], N_JOINTS, TROUSERS))
+    parts.append(rigid_part("shin", v, f, J["left_knee"], NUM_JOINTS, TROUSERS))
     heel = ankle + np.array([0.0, -0.040, -0.055])
     zs = np.array([heel[2] - 0.012, heel[2] - 0.008, heel[2] + 0.01, ankle[2] + 0.04, toe[2] - 0.005, toe[2] + 0.01])
     ys = np.interp(zs, [heel[2], toe[2]], [heel[1], toe[1] + 0.002])
@@ -359,18 +358,18 @@ def _left_leg(rest: np.ndarray) -> list[Part]:
     half_h = np.array([0.0, 0.036, 0.040, 0.036, 0.026, 0.0])
     v, f = loft(np.stack([xs, ys, zs], 1), half_w, half_h, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 18,
                 exponent=3.0)
-    parts.append(rigid_part("foot", v, f, J["left_ankle"], N_JOINTS, SHOES))
+    parts.append(rigid_part("foot", v, f, J["left_ankle"], NUM_JOINTS, SHOES))
     v, f = capsule(toe + np.array([0.0, -0.002, 0.0]), toe + np.array([0.0, -0.004, 0.055]), 0.028, 0.024, 16, 4, 4,
                    flatten=0.75, hint=np.array([0, 1.0, 0]), exponent=2.6)
-    parts.append(rigid_part("toe", v, f, J["left_foot"], N_JOINTS, SHOES))
+    parts.append(rigid_part("toe", v, f, J["left_foot"], NUM_JOINTS, SHOES))
     v, f = ellipsoid(ankle, np.array([0.034, 0.034, 0.034]), 14, 7)
-    parts.append(rigid_part("ankle", v, f, J["left_ankle"], N_JOINTS, TROUSERS))
+    parts.append(rigid_part("ankle", v, f, J["left_ankle"], NUM_JOINTS, TROUSERS))
     return parts
 
 
 def _mirror_map() -> np.ndarray:
     """Joint index of each joint's mirror image (left <-> right)."""
-    out = np.arange(N_JOINTS)
+    out = np.arange(NUM_JOINTS)
     for i, name in enumerate(JOINT_NAMES):
         for a, b in (("left_", "right_"), ("right_", "left_")):
             if name.startswith(a):

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from gesture.skeleton import NUM_JOINTS, PARENTS
+from core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from gesture.body.skeleton import PARENTS
 
 SHAPE_SPACE_DIM = 300  # SMPL-X shapedirs columns [0, 300) are body shape, [300, 400) expressions
-EXPRESSION_SPACE_DIM = 100
 CLAY_RGB = (0.80, 0.72, 0.66)
 SMPLX_HELP = (
     "The SMPL-X model is not shipped with this project. Download SMPLX_NEUTRAL_2020.npz from "
@@ -95,7 +95,7 @@ def _body_model_from_arrays(data: dict, name: str) -> BodyModel:
     if weights.shape != (n, NUM_JOINTS) or j_regressor.shape != (NUM_JOINTS, n):
         raise BodyModelError(f"render.body_model: weights {weights.shape} / J_regressor {j_regressor.shape} are not "
                              f"SMPL-X's 55 joints over {n} vertices. {SMPLX_HELP}")
-    n_dirs = SHAPE_SPACE_DIM + EXPRESSION_SPACE_DIM
+    n_dirs = SHAPE_SPACE_DIM + NUM_EXPRESSIONS
     if shapedirs.ndim != 3 or shapedirs.shape[:2] != (n, 3) or shapedirs.shape[2] < n_dirs:
         raise BodyModelError(f"render.body_model: shapedirs {shapedirs.shape} lacks the 100 expression directions "
                              f"(need (V, 3, >= 400), as in SMPLX_*_2020). {SMPLX_HELP}")
@@ -108,7 +108,7 @@ def _body_model_from_arrays(data: dict, name: str) -> BodyModel:
         parents = tuple(-1 if i == 0 else int(p) for i, p in enumerate(table[0][:NUM_JOINTS]))
     colours = np.tile(np.asarray(CLAY_RGB), (n, 1))
     return BodyModel(v_template, faces, weights, j_regressor, shapedirs[:, :, :SHAPE_SPACE_DIM],
-                     shapedirs[:, :, SHAPE_SPACE_DIM:SHAPE_SPACE_DIM + EXPRESSION_SPACE_DIM], posedirs,
+                     shapedirs[:, :, SHAPE_SPACE_DIM:SHAPE_SPACE_DIM + NUM_EXPRESSIONS], posedirs,
                      parents, colours, name)
 
 
@@ -120,7 +120,7 @@ def export_smplx_npz(model: BodyModel, path: str | Path) -> Path:
     n = model.n_vertices
     if n < 9930:
         raise BodyModelError(f"{path}: smplx's landmark vertex ids need >= 9930 vertices, the model has {n}")
-    shapedirs = np.zeros((n, 3, SHAPE_SPACE_DIM + EXPRESSION_SPACE_DIM), np.float32)
+    shapedirs = np.zeros((n, 3, SHAPE_SPACE_DIM + NUM_EXPRESSIONS), np.float32)
     shapedirs[:, :, :model.shapedirs.shape[2]] = model.shapedirs
     shapedirs[:, :, SHAPE_SPACE_DIM:] = model.exprdirs
     posedirs = np.zeros((n, 3, (NUM_JOINTS - 1) * 9), np.float32) if model.posedirs is None else model.posedirs

@@ -10,8 +10,9 @@ import numpy as np
 import scipy.sparse
 import torch
 
-from gesture.rotation import axis_angle_to_matrix
-from gesture.skeleton import JOINT_NAMES, NUM_JOINTS, Skeleton, forward_kinematics
+from core.body import NUM_JOINTS
+from gesture.body.rotation import axis_angle_to_matrix
+from gesture.body.skeleton import JOINT_NAMES, Skeleton, forward_kinematics
 from render.body_model import BodyModel
 
 

@@ -37,7 +37,7 @@ class UsageError(ValueError):
 def load_motion_25fps(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """poses (T, 55, 3), trans (T, 3), expressions (T, 100), betas (B,) at 25 fps."""
     from gesture.data.beat2 import read_motion
-    from gesture.rotation import resample_motion
+    from gesture.body.rotation import resample_motion
 
     motion = read_motion(path)
     poses, trans, expressions = motion.poses, motion.trans, motion.expressions
@@ -205,7 +205,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(1)
     from core.audio_file import AudioFileError
-    from gesture.data.errors import DataError
+    from core.errors import DataError
     from render.body_model import BodyModelError
     from render.mp4 import Mp4Error, Mp4WriteError
 

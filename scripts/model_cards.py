@@ -41,8 +41,8 @@ def data_line(mix: Path) -> str:
 
 TERMS = f"""## Terms
 - The synthetic sessions are made by this project's generator (`gesture/data/synth`, MIT like the rest of the code;
-  its voices are espeak-ng's). The generator's calibration (`gesture/data/synth/calibration.json`: rest posture,
-  hand shape, gesture space and the micro-motion fitted by `python -m gesture.data.synth.fit`) is measured on the
+  its voices are espeak-ng's). The generator's calibration (`gesture/synth/calibration.json`: rest posture,
+  hand shape, gesture space and the micro-motion fitted by `python -m gesture.eval.synth_fit`) is measured on the
   real BEAT2 clip `2_scott_0_1_1`.
 - The real clip `2_scott_0_1_1` (motion and speech) is BEAT2 data (Liu et al., EMAGE, CVPR 2024) under BEAT2's
   licence: research use with attribution. Because it is part of the training data, these weights carry BEAT2's

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from gesture.skeleton import JOINT_NAMES, Skeleton
+from gesture.body.skeleton import JOINT_NAMES, Skeleton
 from render.avatar import BROWS, EXPRESSION_MAP, SEMANTIC_SHAPES, build_avatar
 from render.body_model import BodyModelError, export_smplx_npz, load_smplx_model
 from render.lbs import Skinner

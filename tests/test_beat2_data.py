@@ -8,17 +8,17 @@ import pytest
 import soundfile as sf
 import torch
 
+from core.config import ConfigError
+from core.errors import DataError
+from gesture.body.regions import LOWER_VELOCITY_SLICE
+from gesture.body.rotation import axis_angle_to_matrix, yaw_of_matrix
 from gesture.data.beat2 import find_takes, read_motion, read_split_csv, read_textgrid_words, read_whisper_words
 from gesture.data.build import main as build_main
 from gesture.data.cache import build_cache
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig, build_data_config
 from gesture.data.dataset import Beat2Chunks, collate_chunks
-from gesture.data.errors import DataError
 from gesture.data.textgrid import parse_textgrid
-from gesture.regions import LOWER_VELOCITY_SLICE
-from gesture.rotation import axis_angle_to_matrix, yaw_of_matrix
-from core.config import ConfigError
 from tests.data.beat2_clip import BEAT2_DIR, CLIP_ID, CLIP_NPZ, needs_clip
 
 torch.set_num_threads(1)

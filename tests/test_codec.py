@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from core.config import ConfigError
+from gesture.body.regions import REGION_DIMS
 from gesture.codec.build import build_codec, count_parameters
 from gesture.codec.config import CodecConfig, RegionSizes, codec_file_config_from_dict, load_codec_config
 from gesture.codec.streaming import StreamingDecoder, StreamingEncoder
-from gesture.regions import REGION_DIMS
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]

@@ -6,11 +6,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from gesture.body.skeleton import Skeleton
 from gesture.codec.checkpoint import load_codec
 from gesture.codec.data import load_motion_splits
 from gesture.codec.evaluation import evaluate
 from gesture.codec.streaming import StreamingDecoder
-from gesture.skeleton import Skeleton
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]

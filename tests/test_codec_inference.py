@@ -5,11 +5,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from gesture.body.regions import REGION_DIMS
 from gesture.codec.build import build_codec
 from gesture.codec.config import load_codec_config
 from gesture.codec.inference import INFERENCE_DTYPES, inference_codec
 from gesture.codec.streaming import StreamingDecoder, StreamingEncoder
-from gesture.regions import REGION_DIMS
 from tests.kernels import KERNELS, using
 
 torch.set_num_threads(1)

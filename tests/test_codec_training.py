@@ -8,16 +8,18 @@ import pytest
 import torch
 import yaml
 
+from core.body import UPPER_JOINTS
 from core.config import ConfigError
+from gesture.body.motion import integrate_velocity
+from gesture.body.regions import motion_to_features
+from gesture.body.rotation import axis_angle_to_matrix
+from gesture.body.rotation import axis_angle_to_rot6d
 from gesture.codec.checkpoint import load_codec
 from gesture.codec.config import CodecTrainConfig
 from gesture.codec.data import load_motion_splits
 from gesture.codec.losses import (RegionLoss, balance_weights, balanced_joint_weights, integrate_root, laplacian,
                                   log_map, log_speed_error, rotation_variances, velocity)
-from gesture.motion import integrate_velocity
-from gesture.regions import UPPER_JOINTS, motion_to_features
-from gesture.rotation import axis_angle_to_matrix, axis_angle_to_rot6d
-from gesture.train_codec import commitment_ramp, main
+from gesture.codec.train import commitment_ramp, main
 
 torch.set_num_threads(1)
 CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"

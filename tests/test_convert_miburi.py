@@ -9,16 +9,17 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 
+from core.body import REGIONS
 from core.config import ConfigError
 from core.spec import ConditionSpec
 from gesture.codec.checkpoint import load_codec
-from gesture.convert_miburi import convert_release, main, release_gesture_config
 from gesture.lm.checkpoint import load_lm
 from gesture.nn.attention import StreamingMultiheadAttention
 from gesture.process import build_generator
+from gesture.release.convert import convert_release, main, release_gesture_config
 from gesture.release.source import ReleaseError
 from gesture.release.speakers import resolve_character, resolve_character_for_checkpoint
-from gesture.release.synthetic import (REGIONS, ReferenceSizes, codec_layout, glm_layout, write_experiment)
+from gesture.release.synthetic import ReferenceSizes, codec_layout, glm_layout, write_experiment
 
 torch.set_num_threads(1)
 KEYS_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "state_dict_keys"

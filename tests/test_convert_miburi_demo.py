@@ -1,5 +1,5 @@
 """configs/miburi-release.yaml: the moshi backend plus a converted release, run by launch.py end to end
-(a tiny random Moshi in the released file formats, and a tiny release converted by gesture.convert_miburi)."""
+(a tiny random Moshi in the released file formats, and a tiny release converted by gesture.release.convert)."""
 
 import dataclasses
 import json
@@ -13,12 +13,12 @@ import soundfile as sf
 
 pytest.importorskip("moshi")
 
-from core.messages import AudioUser, GestureStep  # noqa: E402
 from agent.sections import load_app_config  # noqa: E402
 from core.component import RunContext  # noqa: E402
+from core.messages import AudioUser, GestureStep  # noqa: E402
 from dialogue.process import create_component as create_dialogue  # noqa: E402
 from gesture.process import create_component as create_gesture  # noqa: E402
-from gesture.convert_miburi import convert_release  # noqa: E402
+from gesture.release.convert import convert_release  # noqa: E402
 from gesture.release.synthetic import ReferenceSizes, write_experiment  # noqa: E402
 from tests.test_moshi_backend import TINY_CARD, TINY_LM, TINY_TEXT_CARD, tiny_moshi_files  # noqa: E402,F401
 

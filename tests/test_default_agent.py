@@ -19,11 +19,11 @@ from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer
 from dialogue.text_vocab import LOCAL_SPEC, word_token
 from gesture.data.audio import load_audio
 from gesture.data.beat2 import Word, find_takes
-from gesture.data.tokenize import (agent_words, place_words, tokenize_directory, tokenize_take, vad_from_frames,
-                                   vad_from_words)
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.data import LMDataset
+from gesture.lm.tokenize import (agent_words, place_words, tokenize_directory, tokenize_take, vad_from_frames,
+                                 vad_from_words)
 from gesture.process import build_generator
 
 REPO = Path(__file__).resolve().parents[1]

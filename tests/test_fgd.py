@@ -6,17 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from gesture.data.errors import DataError
-from gesture.evaluate import main as evaluate_main
-from gesture.fgd import frechet_distance
-from gesture.fgd_vaeskconv import (
-    VAESKConvEncoder,
-    edge_neighbours,
-    edge_topology,
-    load_vaeskconv_encoder,
-    skeleton_chains,
-)
-from gesture.skeleton import PARENTS
+from core.errors import DataError
+from gesture.body.skeleton import PARENTS
+from gesture.eval.evaluate import main as evaluate_main
+from gesture.eval.fgd import frechet_distance
+from gesture.eval.fgd_vaeskconv import (VAESKConvEncoder, edge_neighbours, edge_topology, load_vaeskconv_encoder,
+                                        skeleton_chains)
 from tests.data.beat2_clip import CLIP_NPZ, needs_clip
 
 torch.set_num_threads(1)
@@ -102,8 +97,8 @@ def test_frechet_of_encoder_features_separates_motions():
 def test_kinetic_fgd_grows_with_noise_on_the_scale_of_real_differences():
     """GT against itself delayed 0.4 s, against its other half, frozen, and with growing rotation noise on the
     body joints: the noise's distances grow with it and stay between a delay's and a frozen body's."""
-    from gesture import metrics as M
-    from gesture.fgd import kinetic_fgd
+    from gesture.eval import metrics as M
+    from gesture.eval.fgd import kinetic_fgd
 
     gt = M.load_motion_clip(CLIP_NPZ).at_fps(25)
     gt_joints = M.prepare_pair(gt, gt).gt_joints

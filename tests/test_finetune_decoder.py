@@ -7,7 +7,7 @@ from safetensors.torch import load_file
 
 from gesture.codec.checkpoint import MODEL_FILE, load_codec
 from gesture.codec.data import load_motion_splits, sample_batch
-from gesture.train_codec import main
+from gesture.codec.train import main
 from tests.test_codec_training import CLIP, TINY_YAML
 
 torch.set_num_threads(1)

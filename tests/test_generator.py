@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
+from gesture.body.regions import LOWER_VELOCITY_SLICE
+from gesture.body.rotation import axis_angle_to_matrix
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.lm.idle import IdleGate
-from gesture.regions import LOWER_VELOCITY_SLICE
-from gesture.rotation import axis_angle_to_matrix
 from tests.kernels import KERNELS, using
 
 torch.set_num_threads(1)
@@ -151,7 +151,7 @@ def test_soak_memory_stays_flat():
     from core.config import build_dataclass, load_yaml
     from gesture.codec.build import build_codec
     from gesture.codec.config import load_codec_config
-    from gesture.config import LMFileConfig
+    from gesture.lm.config import LMFileConfig
     from gesture.lm.model import GestureLM
 
     steps = int(os.environ.get("GESTURE_SOAK_STEPS", 45_000))

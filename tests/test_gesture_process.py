@@ -7,17 +7,17 @@ import numpy as np
 import pytest
 import torch
 
+from core.component import RunContext
 from core.config import ConfigError
 from core.messages import DialogueStep, GestureStep
 from core.spec import MOSHI_SPEC, SpecMismatchError
-from core.component import RunContext
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
 from gesture.config import GestureConfig
 from gesture.data.beat2 import read_motion
+from gesture.eval.metrics import load_motion_clip
 from gesture.lm.checkpoint import save_lm
 from gesture.lm.fixtures import TINY_SPEC, tiny_codec_config, tiny_codecs, tiny_lm
-from gesture.metrics import load_motion_clip
 from gesture.process import create_component
 
 torch.set_num_threads(1)
@@ -58,7 +58,7 @@ def test_dialogue_steps_become_gesture_steps_and_sessions_reset(checkpoints, tmp
     component.close()
     stats = json.loads((tmp_path / "run" / "gesture.json").read_text())
     assert stats["steps"] == 8 and stats["sessions"] == 2 and stats["step_ms_median"] > 0
-    clip = load_motion_clip(tmp_path / "run" / "motion.npz")  # offline: every step, readable by gesture.evaluate
+    clip = load_motion_clip(tmp_path / "run" / "motion.npz")  # offline: every step, readable by gesture.eval.evaluate
     assert clip.fps == 25 and clip.poses.shape == (16, 55, 3)
     np.testing.assert_array_equal(clip.poses[:8], np.concatenate([m.poses for m in first]))
     beat2 = read_motion(tmp_path / "run" / "motion.npz")  # and by the BEAT2 reader (render.play, the data tools)

@@ -1,11 +1,11 @@
-"""`python -m gesture.data.idle_slices`: the idle gate's token slices from tokenized recordings."""
+"""`python -m gesture.lm.idle_slices`: the idle gate's token slices from tokenized recordings."""
 
 import numpy as np
 import pytest
 
-from gesture.data.idle_slices import longest_silent_run, main
 from gesture.lm.data import write_recording
 from gesture.lm.idle import load_idle_slices
+from gesture.lm.idle_slices import longest_silent_run, main
 
 
 def test_longest_silent_run_known_values():

@@ -7,8 +7,8 @@ import torch
 
 from core.config import ConfigError
 from core.spec import MOSHI_SPEC, ConditionSpec, SpecMismatchError
-from gesture.config import LMConfig
 from gesture.lm.checkpoint import load_lm, save_lm
+from gesture.lm.config import LMConfig
 from gesture.lm.fixtures import TINY_SPEC, tiny_lm
 from gesture.lm.model import GestureLM, shift_history
 from gesture.lm.stepper import LMStepper

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from gesture import metrics as M
-from gesture.evaluate import evaluate_motion, main as evaluate_main
-from gesture.fgd import KineticGeometricEncoder, frechet_distance
+from gesture.eval import metrics as M
+from gesture.eval.evaluate import main as evaluate_main
+from gesture.eval.scores import evaluate_motion
+from gesture.eval.fgd import KineticGeometricEncoder, frechet_distance
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, MEAN_VEL_NPY, needs_clip
 
 torch.set_num_threads(1)

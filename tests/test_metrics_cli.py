@@ -1,4 +1,4 @@
-"""gesture.evaluate on user mistakes: one line naming the file and the problem, exit code 2, no traceback
+"""gesture.eval.evaluate on user mistakes: one line naming the file and the problem, exit code 2, no traceback
 (issue 19 point 8)."""
 
 import subprocess

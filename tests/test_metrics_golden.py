@@ -1,4 +1,4 @@
-"""The reference's own metric outputs on the real clip (../shared/reference/metrics_golden): gesture.evaluate
+"""The reference's own metric outputs on the real clip (../shared/reference/metrics_golden): gesture.eval.evaluate
 must give the same numbers by the same protocol (issue 17)."""
 
 import json
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from gesture import metrics as M
-from gesture.evaluate import evaluate_motion
+from gesture.eval import metrics as M
+from gesture.eval.scores import evaluate_motion
 from tests.data.beat2_clip import CLIP_WAV, MEAN_VEL_NPY
 
 torch.set_num_threads(1)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gesture import metrics as M
+from gesture.eval import metrics as M
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,7 +22,7 @@ LIBROSA_PARITY = textwrap.dedent(f"""
     import json, sys
     import numpy as np, librosa
     sys.path.insert(0, {str(REPO)!r})
-    from gesture import metrics as M
+    from gesture.eval import metrics as M
     y22, sr = librosa.load({str(CLIP_WAV)!r})
     y16 = librosa.resample(y22, orig_sr=sr, target_sr=16000)
     ours16 = M.speech_at_16k(M.load_speech({str(CLIP_WAV)!r}))
@@ -73,7 +73,7 @@ def test_peak_pick_follows_its_definition():
 
 @needs_clip
 def test_evaluation_never_imports_numba():
-    code = ("import sys; from gesture.evaluate import main; main(sys.argv[1:]); "
+    code = ("import sys; from gesture.eval.evaluate import main; main(sys.argv[1:]); "
             "print('numba' in sys.modules, 'librosa' in sys.modules)")
     proc = subprocess.run([sys.executable, "-c", code, *EVALUATE[3:]], cwd=REPO, capture_output=True, text=True,
                           check=True)

@@ -6,15 +6,16 @@ import pytest
 import torch
 
 from agent.config import ConfigError
+from core.timing import MOTION_FPS
+from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle
 from gesture.config import MicroMotionConfig
-from gesture.data.synth.face import BLINK_PSI, BLINKS_PER_MINUTE
-from gesture.data.synth.tracks import smooth_noise
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.micro_motion import CausalSmoothNoise, calibrated_micro_motion, is_speaking
 from gesture.process import build_micro_motion
-from gesture.regions import MOTION_FPS
-from gesture.rotation import axis_angle_to_matrix, geodesic_angle
+from gesture.synth.face import BLINK_PSI, BLINKS_PER_MINUTE
+from gesture.synth.tracks import smooth_noise
+from gesture.synth.tracks import smooth_noise
 
 torch.set_num_threads(1)
 JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)

@@ -1,15 +1,15 @@
-"""The realism report (gesture.realism): its measures on motions whose answer is known, and that it tells the real
+"""The realism report (gesture.eval.realism): its measures on motions whose answer is known, and that it tells the real
 clip from a trivial baseline."""
 
 import numpy as np
 import pytest
 import torch
 
-from gesture import metrics as M
-from gesture import realism as R
-from gesture.data.synth.face import expressions_from_activations
-from gesture.data.synth.tracks import add_bump
-from gesture.skeleton import Skeleton
+from gesture.eval import metrics as M
+from gesture.eval import realism as R
+from gesture.body.skeleton import Skeleton
+from gesture.synth.face import expressions_from_activations
+from gesture.synth.tracks import add_bump
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
 
 torch.set_num_threads(1)
@@ -97,7 +97,7 @@ def test_cli_names_a_missing_file(tmp_path, capsys):
 
 
 def test_evaluate_suite_real_is_the_realism_report(tmp_path, capsys):
-    from gesture.evaluate import main as evaluate_main
+    from gesture.eval.evaluate import main as evaluate_main
 
     code = evaluate_main(["--suite", "real", "--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"),
                           "--no-video"])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from gesture import rotation as R
+from gesture.body import rotation as R
 
 torch.set_num_threads(1)
 

@@ -1,4 +1,4 @@
-"""The default agent's quality report (gesture.suite): its measures on constructed inputs, goal checks, the
+"""The default agent's quality report (gesture.eval.suite): its measures on constructed inputs, goal checks, the
 generator driver, the codec MPJPE on real motion, and (slow) a short run of the whole suite."""
 
 from __future__ import annotations
@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
-from gesture import suite
+from gesture.eval import suite
+from gesture.body.motion import canonicalize
+from gesture.body.skeleton import Skeleton
 from gesture.data.beat2 import read_motion
 from gesture.data.chunks import motion_at_fps
 from gesture.lm.codecs import load_codecs
-from gesture.motion import canonicalize
-from gesture.skeleton import Skeleton
 
 REPO = Path(__file__).resolve().parents[1]
 BEAT2_NPZ = REPO.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
@@ -50,8 +50,8 @@ def test_goal_checks_use_the_issue_limits():
 
 
 def test_heldout_sessions_are_the_training_datas_own_test_sessions_in_session_order(tmp_path):
-    from gesture.data.synth.config import SynthConfig
-    from gesture.data.synthetic import SESSION_MINUTES, generate_sessions
+    from gesture.synth.config import SynthConfig
+    from gesture.synth.build import SESSION_MINUTES, generate_sessions
 
     suite.ensure_heldout(tmp_path / "heldout", 2)
     takes = suite._test_takes(tmp_path / "heldout")

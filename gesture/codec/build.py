@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from gesture.body.regions import REGION_DIMS
 from gesture.codec.config import CodecConfig
 from gesture.codec.model import GestureCodec
-from gesture.regions import REGION_DIMS
 
 
 def build_codec(config: CodecConfig, region: str) -> GestureCodec:

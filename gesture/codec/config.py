@@ -11,9 +11,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from core.body import REGIONS
 from core.config import ConfigError, build_dataclass, load_yaml
-
-REGIONS = ("upper", "lower", "face")
 
 
 def _check_positive(path: str, **values: float) -> None:

@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core.timing import MOTION_FPS
+from gesture.body.motion import canonicalize
+from gesture.body.regions import motion_to_features
 from gesture.data.beat2 import read_motion
 from gesture.data.chunks import motion_at_fps
 from gesture.data.dataset import Beat2Chunks
-from gesture.motion import canonicalize
-from gesture.regions import MOTION_FPS, motion_to_features
 
 TRAIN_SPLITS = ("train", "additional")
 HELDOUT_SPLITS = ("val", "test")

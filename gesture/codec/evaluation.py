@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import torch
 
+from core.body import JAW_JOINT, LOWER_JOINTS, REGION_JOINTS
+from gesture.body.regions import FACE_JAW_SLICE, LOWER_ROT_SLICE
+from gesture.body.rotation import geodesic_angle, rot6d_to_axis_angle, rot6d_to_matrix
+from gesture.body.skeleton import Skeleton, forward_kinematics
 from gesture.codec.data import MotionSequence
 from gesture.codec.model import GestureCodec
-from gesture.regions import FACE_JAW_SLICE, JAW_JOINT, LOWER_JOINTS, LOWER_ROT_SLICE, REGION_JOINTS
-from gesture.rotation import geodesic_angle, rot6d_to_axis_angle, rot6d_to_matrix
-from gesture.skeleton import Skeleton, forward_kinematics
 
 
 def region_rot6d(features: torch.Tensor, region: str) -> torch.Tensor:

@@ -21,7 +21,7 @@ at `balance_cap`, then normalised to mean 1 (`balance_weights`). Unweighted, the
 large arm rotations and output a constant mean pose for the spine, neck, head, collars and wrists, whose
 variance is 10-800x smaller: a speaker's head and torso motion vanished in the codec.
 SMPL-X vertex terms need a licensed body model and are not computed here. Joint positions come
-from `gesture.skeleton.forward_kinematics` on the given skeleton (default: the built-in one), with
+from `gesture.body.skeleton.forward_kinematics` on the given skeleton (default: the built-in one), with
 every joint outside the region at rest and no translation (the lower body adds its integrated root).
 "Laplacian" is the squared error after the 5-tap second-derivative filter [-1, 16, -30, 16, -1] / 12.
 """
@@ -32,12 +32,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from core.body import CONTACT_JOINTS, JAW_JOINT, LOWER_JOINTS, NUM_JOINTS, UPPER_BODY_JOINTS, UPPER_JOINTS
+from core.timing import MOTION_FPS
+from gesture.body.regions import (FACE_EXPRESSION_SLICE, FACE_JAW_SLICE, LOWER_CONTACT_SLICE, LOWER_ROT_SLICE,
+                                  LOWER_VELOCITY_SLICE)
+from gesture.body.rotation import geodesic_angle, rot6d_to_matrix
+from gesture.body.skeleton import Skeleton, forward_kinematics
 from gesture.codec.evaluation import region_rot6d
-from gesture.regions import (CONTACT_JOINTS, FACE_EXPRESSION_SLICE, FACE_JAW_SLICE, JAW_JOINT, LOWER_CONTACT_SLICE,
-                             LOWER_JOINTS, LOWER_ROT_SLICE, LOWER_VELOCITY_SLICE, MOTION_FPS, UPPER_JOINTS)
-from gesture.metrics import BEAT_JOINTS
-from gesture.rotation import geodesic_angle, rot6d_to_matrix
-from gesture.skeleton import NUM_JOINTS, Skeleton, forward_kinematics
 
 LAPLACIAN_KERNEL = (-1.0, 16.0, -30.0, 16.0, -1.0)
 CONTACT_ON = 0.98
@@ -189,7 +190,7 @@ class RegionLoss(nn.Module):
     def _position_terms(self, pred_joints: torch.Tensor, gt_joints: torch.Tensor) -> dict[str, torch.Tensor]:
         terms = position_terms(pred_joints, gt_joints)
         if self.log_speed_weight:
-            beat = list(BEAT_JOINTS)
+            beat = list(UPPER_BODY_JOINTS)
             terms["log_speed"] = self.log_speed_weight * log_speed_error(
                 pred_joints[:, :, beat], gt_joints[:, :, beat], self.speed_floor_mps)
         return terms

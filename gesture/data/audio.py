@@ -9,7 +9,7 @@ import numpy as np
 import soundfile as sf
 from scipy.signal import resample_poly
 
-from gesture.data.errors import DataError
+from core.errors import DataError
 
 
 def resample_audio(pcm: np.ndarray, src_hz: int, dst_hz: int) -> np.ndarray:

@@ -18,9 +18,9 @@ from typing import Optional
 
 import numpy as np
 
-from gesture.data.errors import DataError
+from core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from core.errors import DataError
 from gesture.data.textgrid import read_textgrid
-from gesture.skeleton import NUM_JOINTS
 
 MOTION_DIRS = ("smplxflame_25", "smplxflame_30")  # preferred first
 AUDIO_DIRS = ("wave16k",)
@@ -28,7 +28,6 @@ TRANSCRIPT_DIR = "whisper_transcription"
 TEXTGRID_DIR = "textgrid"
 SPLIT_CSV = "train_test_split.csv"
 SPLITS = {"train": "train", "additional": "train", "val": "val", "test": "test"}
-NUM_EXPRESSIONS = 100
 
 
 @dataclass(frozen=True)

@@ -15,11 +15,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from core.config import ConfigError  # noqa: E402
+from core.errors import DataError  # noqa: E402
 from gesture.data.beat2 import find_takes  # noqa: E402
 from gesture.data.cache import build_cache  # noqa: E402
 from gesture.data.config import DataConfig, load_data_config  # noqa: E402
-from gesture.data.errors import DataError  # noqa: E402
-from core.config import ConfigError  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -15,11 +15,11 @@ from typing import Callable, Iterable, Optional
 
 import numpy as np
 
+from core.errors import DataError
+from gesture.body.skeleton import Skeleton
 from gesture.data.beat2 import Take, Word
 from gesture.data.chunks import TakeChunks, chunk_take
 from gesture.data.config import DataConfig
-from gesture.data.errors import DataError
-from gesture.skeleton import Skeleton
 
 CACHE_FORMAT = 1
 MANIFEST = "manifest.json"

@@ -7,13 +7,13 @@ from typing import Optional
 
 import numpy as np
 
+from gesture.body.motion import canonicalize
+from gesture.body.regions import motion_to_features
+from gesture.body.rotation import resample_motion
+from gesture.body.skeleton import Skeleton
 from gesture.data.audio import load_audio
 from gesture.data.beat2 import Motion, Take, Word, read_motion, read_words
 from gesture.data.config import DataConfig
-from gesture.motion import canonicalize
-from gesture.regions import motion_to_features
-from gesture.rotation import resample_motion
-from gesture.skeleton import Skeleton
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from typing import Any, Mapping, Optional
 import yaml
 
 from core.config import ConfigError, build_dataclass
-from gesture.regions import MOTION_FPS
+from core.timing import MOTION_FPS
 
 AUDIO_SAMPLE_RATE_HZ = 16_000
 

@@ -13,7 +13,7 @@ from safetensors.torch import load_file, save_file
 
 from core.config import build_dataclass
 from core.spec import ConditionSpec
-from gesture.config import LMConfig
+from gesture.lm.config import LMConfig
 from gesture.lm.model import GestureLM
 
 WEIGHTS_FILE = "lm.safetensors"

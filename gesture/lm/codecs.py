@@ -7,10 +7,9 @@ from pathlib import Path
 
 import torch
 
+from core.body import REGIONS
 from gesture.codec.checkpoint import load_codec
 from gesture.codec.model import GestureCodec
-
-REGIONS = ("upper", "lower", "face")
 
 
 def load_codecs(directory: Path) -> dict[str, GestureCodec]:

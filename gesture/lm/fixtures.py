@@ -8,7 +8,7 @@ from core.spec import ConditionSpec
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecConfig, RegionSizes
 from gesture.codec.model import GestureCodec
-from gesture.config import LMConfig
+from gesture.lm.config import LMConfig
 from gesture.lm.model import GestureLM
 
 TINY_SPEC = ConditionSpec(name="tiny", text_vocab=40, audio_card=12, embed_dim=24)

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from core.spec import ConditionSpec
-from gesture.config import LMConfig
+from gesture.lm.config import LMConfig
 from gesture.lm.embeddings import GestureEmbedding, check_token_range, embed_or_zero
 from gesture.lm.layers import LAYER_NORM_EPS, DepthLayer, TemporalLayer
 from gesture.nn.rope import RotaryEmbedding

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from gesture.config import LMConfig, LMTrainConfig
+from gesture.lm.config import LMConfig, LMTrainConfig
 
 
 def _ramp(epoch: float, start: float, end: float, v0: float, v1: float) -> float:

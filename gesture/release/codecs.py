@@ -14,15 +14,15 @@ from pathlib import Path
 
 import torch
 
+from core.body import REGIONS
+from gesture.body.regions import REGION_DIMS
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecConfig, RegionSizes
 from gesture.codec.model import GestureCodec
 from gesture.codec.quantizer import USAGE_EPS
-from gesture.regions import REGION_DIMS
 from gesture.release.keys import match_keys, state_shapes
 from gesture.release.source import ExperimentConfig, ReleaseError, SourceCheckpoint
 
-REGIONS = ("upper", "lower", "face")
 FIRST_CONV = "seanet_encoder.model.0.conv.conv.weight_v"
 FOLD_TOLERANCE = 1e-5
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import torch
 
 from core.spec import ConditionSpec
-from gesture.config import LMConfig
+from gesture.lm.config import LMConfig
 from gesture.lm.model import GestureLM
 from gesture.release.codecs import codebook_vectors
 from gesture.release.keys import match_keys, state_shapes

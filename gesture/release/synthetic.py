@@ -26,9 +26,9 @@ import torch
 import yaml
 from safetensors.torch import save_file
 
-from gesture.regions import REGION_DIMS
+from core.body import REGIONS
+from gesture.body.regions import REGION_DIMS
 
-REGIONS = ("upper", "lower", "face")
 Layout = dict[str, tuple[int, ...]]
 
 

@@ -1,0 +1,18 @@
+"""The body every stage shares, defined once: SMPL-X's joints and expression coefficients, and MIBURI's regions.
+
+Joint indices are SMPL-X's (gesture.body.skeleton.JOINT_NAMES). Each region is modelled by its own codec:
+upper body + hands, lower body (with root velocity and foot contacts) and face (jaw + expressions).
+"""
+
+NUM_JOINTS = 55
+NUM_EXPRESSIONS = 100
+
+REGIONS = ("upper", "lower", "face")
+UPPER_BODY_JOINTS = (3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21)
+HAND_JOINTS = tuple(range(25, NUM_JOINTS))
+UPPER_JOINTS = UPPER_BODY_JOINTS + HAND_JOINTS  # 43
+LOWER_JOINTS = (0, 1, 2, 4, 5, 7, 8, 10, 11)
+CONTACT_JOINTS = (7, 8, 10, 11)  # ankles and feet
+JAW_JOINT = 22
+EYE_JOINTS = (23, 24)
+REGION_JOINTS = {"upper": UPPER_JOINTS, "lower": LOWER_JOINTS, "face": (JAW_JOINT,)}

@@ -1,0 +1,1 @@
+"""Body maths: the SMPL-X skeleton and forward kinematics, rotations, the regions' feature layouts, root motion."""

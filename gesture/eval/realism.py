@@ -1,0 +1,494 @@
+"""Realism report: motion generated for real speech against the real speaker's motion on that speech.
+
+    python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
+        [--set KEY=VALUE ...]   (passed to launch.py, e.g. other checkpoints)
+
+The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spoken by the ``playback`` backend
+(``launch.py --speak WAV --headless --seed N --report DIR``, which writes the agent's motion to DIR/motion.npz;
+``--motion`` reuses one) and compared with the real motion of that clip. Two references are measured the same
+way, so the report is seen to discriminate:
+
+- ``generated_without_micro_motion``: the same agent with ``gesture.micro_motion.enabled=false`` (what its codecs
+  alone carry; not measured with ``--motion``);
+- ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
+- ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
+- ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``): the ceiling of what
+  an agent speaking through those codecs can reach.
+
+Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
+- per joint group (``JOINT_GROUPS``): angular speed of the local rotations (rad/s; the angle of R_t^T R_t+1 times
+  the frame rate), its median and 90th percentile, the fraction of still frames (< ``STILL_RAD_S``), and pose
+  diversity (the mean angle between a frame's rotation and the joint's mean rotation, rad);
+- L1div, BeatAlign and the kinetic FGD by the reference protocol (gesture.eval.scores.evaluate_motion);
+- gesture strokes per minute (peaks of wrist speed in the body frame, ``STROKE_*``) and the distribution of hand
+  height (wrist above the pelvis in the body frame: percentiles, given as differences from the real clip's in
+  metres, and the overlap of the two histograms, 1 = the same distribution);
+- blinks, brow raises and smiles per minute (events of the avatar's expression activations, ``FACE_EVENTS``).
+
+Every scalar is also given as a ratio to the real clip's. ``--out`` gets ``realism.json``, ``speeds.png`` (the
+speed distributions, real against generated) and ``side_by_side.mp4`` (the real clip and the agent speaking the
+same audio, both rendered as by ``render.play``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Optional, Sequence
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from scipy.ndimage import gaussian_filter1d, median_filter  # noqa: E402
+from scipy.signal import find_peaks  # noqa: E402
+
+from core.errors import DataError  # noqa: E402
+from core.timing import MOTION_FPS  # noqa: E402
+from gesture.eval import metrics as M  # noqa: E402
+from gesture.body.motion import canonicalize  # noqa: E402
+from gesture.body.rotation import axis_angle_to_matrix, axis_angle_to_quaternion, quaternion_to_axis_angle  # noqa: E402
+from gesture.body.skeleton import Skeleton, forward_kinematics_np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+SHARED_BEAT2 = ROOT.parent / "shared" / "data" / "beat2"
+REAL_CLIP = SHARED_BEAT2 / "2_scott_0_1_1"
+MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
+
+JOINT_GROUPS = {
+    "wrists": (20, 21),
+    "elbows": (18, 19),
+    "shoulders": (16, 17),
+    "collars": (13, 14),
+    "neck_head": (12, 15),
+    "spine": (3, 6, 9),
+}
+GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four
+STILL_RAD_S = 0.2
+EDGE_S = 2.0
+PELVIS, WRISTS = 0, (20, 21)
+STROKE_SPEED_MPS = 0.35  # a stroke: a wrist speed peak at least this fast ...
+STROKE_PROMINENCE_MPS = 0.2  # ... standing out this much from its surroundings ...
+STROKE_MIN_GAP_S = 0.25  # ... and this far from the previous one (per wrist)
+HEIGHT_BINS_M = np.linspace(-0.4, 0.6, 41)
+FACE_EVENTS = {  # shape: (height above its 4 s running median, minimum spacing s) of an event's peak
+    "blink": (0.5, 0.3),
+    "brow_raise": (0.25, 0.6),
+    "smile": (0.25, 1.0),
+}
+FACE_BASELINE_S = 4.0
+BASELINE_NOISE_RAD = 0.02
+BASELINE_NOISE_HZ = 2.0
+
+
+# ---------------------------------------------------------------- motion at 25 fps
+
+
+def load_clip(path: Path | str) -> M.MotionClip:
+    """A motion file at 25 fps with the heading of its first frame removed."""
+    return canonical(M.load_motion_clip(path).at_fps(MOTION_FPS))
+
+
+def canonical(clip: M.MotionClip) -> M.MotionClip:
+    poses, trans = canonicalize(clip.poses, clip.trans)
+    return replace(clip, poses=poses, trans=trans)
+
+
+def cut(clip: M.MotionClip, n_frames: int) -> M.MotionClip:
+    return replace(clip, poses=clip.poses[:n_frames], trans=clip.trans[:n_frames],
+                   expressions=clip.expressions[:n_frames])
+
+
+def inner(x: np.ndarray, fps: float = MOTION_FPS) -> np.ndarray:
+    edge = int(EDGE_S * fps)
+    if len(x) <= 2 * edge + 2:
+        raise ValueError(f"realism: a clip of {len(x)} frames is too short to drop {EDGE_S} s at each end")
+    return x[edge: len(x) - edge]
+
+
+# ---------------------------------------------------------------- joint groups
+
+
+def angular_speeds(poses: np.ndarray, fps: float) -> np.ndarray:
+    """(T, J, 3) axis-angle -> (T-1, J) rad/s: the angle of each joint's rotation from one frame to the next."""
+    rot = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
+    rel = np.swapaxes(rot[:-1], -1, -2) @ rot[1:]  # R_t^T R_t+1
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0)) * fps
+
+
+def pose_diversity(poses: np.ndarray) -> np.ndarray:
+    """(T, J, 3) -> (J,) mean angle (rad) between each frame's rotation and the joint's mean rotation."""
+    q = axis_angle_to_quaternion(np.asarray(poses, np.float64))  # (T, J, 4)
+    q = np.where((q * q[:1]).sum(-1, keepdims=True) < 0, -q, q)
+    mean = q.mean(0)
+    mean /= np.linalg.norm(mean, axis=-1, keepdims=True)
+    dot = np.abs((q * mean[None]).sum(-1))  # (T, J)
+    return (2 * np.arccos(np.clip(dot, 0.0, 1.0))).mean(0)
+
+
+def group_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
+    """Per joint group: angular-speed median and p90 (rad/s), still fraction, pose diversity (rad)."""
+    speeds = angular_speeds(poses, fps)  # (T-1, 55)
+    diversity = pose_diversity(poses)
+    out = {}
+    for name, joints in JOINT_GROUPS.items():
+        s = speeds[:, list(joints)].reshape(-1)
+        out[name] = {
+            "speed_median": float(np.median(s)),
+            "speed_p90": float(np.percentile(s, 90)),
+            "still_fraction": float((s < STILL_RAD_S).mean()),
+            "diversity": float(diversity[list(joints)].mean()),
+        }
+    return out
+
+
+def group_speed_samples(poses: np.ndarray, fps: float = MOTION_FPS) -> dict[str, np.ndarray]:
+    speeds = angular_speeds(poses, fps)
+    return {name: speeds[:, list(joints)].reshape(-1) for name, joints in JOINT_GROUPS.items()}
+
+
+# ---------------------------------------------------------------- hands
+
+
+def body_frame_joints(poses: np.ndarray, skeleton: Skeleton) -> np.ndarray:
+    """(T, 55, 3) joint positions with the root rotation and translation removed (the body's own frame)."""
+    local = np.array(poses, np.float32, copy=True)
+    local[:, 0] = 0.0
+    joints, _ = forward_kinematics_np(skeleton, local, np.zeros((len(local), 3), np.float32))
+    return joints
+
+
+def stroke_times_s(wrist: np.ndarray, fps: float = MOTION_FPS) -> np.ndarray:
+    """(T, 3) wrist positions -> times (s) of its strokes: prominent peaks of its (lightly smoothed) speed."""
+    speed = np.linalg.norm(np.gradient(gaussian_filter1d(wrist, 1.0, axis=0), axis=0), axis=-1) * fps  # (T,)
+    peaks, _ = find_peaks(speed, height=STROKE_SPEED_MPS, prominence=STROKE_PROMINENCE_MPS,
+                          distance=max(1, int(STROKE_MIN_GAP_S * fps)))
+    return peaks / fps
+
+
+def hand_stats(joints: np.ndarray, fps: float = MOTION_FPS) -> dict:
+    minutes = len(joints) / fps / 60.0
+    strokes = sum(len(stroke_times_s(joints[:, w], fps)) for w in WRISTS)
+    height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS:PELVIS + 1, 1]).reshape(-1)  # (2T,) metres
+    p10, p50, p90 = np.percentile(height, (10, 50, 90))
+    return {"strokes_per_minute": strokes / minutes, "hand_height_p10_m": float(p10),
+            "hand_height_median_m": float(p50), "hand_height_p90_m": float(p90)}
+
+
+def height_histogram(joints: np.ndarray) -> np.ndarray:
+    height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS:PELVIS + 1, 1]).reshape(-1)
+    hist, _ = np.histogram(np.clip(height, HEIGHT_BINS_M[0], HEIGHT_BINS_M[-1]), HEIGHT_BINS_M)
+    return hist / max(hist.sum(), 1)
+
+
+# ---------------------------------------------------------------- face
+
+
+def face_activations(expressions: np.ndarray) -> dict[str, np.ndarray]:
+    """(T, 100) FLAME psi -> the avatar's activations of the shapes in FACE_EVENTS (render.avatar's map)."""
+    from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+
+    return {name: expressions @ EXPRESSION_MAP[SEMANTIC_SHAPES.index(name)] for name in FACE_EVENTS}
+
+
+def face_event_times_s(activation: np.ndarray, height: float, min_gap_s: float, fps: float = MOTION_FPS) -> np.ndarray:
+    base = median_filter(activation, size=int(FACE_BASELINE_S * fps) | 1, mode="nearest")
+    peaks, _ = find_peaks(activation - base, height=height, distance=max(1, int(min_gap_s * fps)))
+    return peaks / fps
+
+
+def face_stats(expressions: np.ndarray, fps: float = MOTION_FPS) -> dict:
+    minutes = len(expressions) / fps / 60.0
+    acts = face_activations(np.asarray(expressions, np.float64))
+    return {f"{name}s_per_minute": len(face_event_times_s(acts[name], *FACE_EVENTS[name], fps)) / minutes
+            for name in FACE_EVENTS}
+
+
+# ---------------------------------------------------------------- one motion against the real clip
+
+
+def describe(clip: M.MotionClip, skeleton: Skeleton) -> dict:
+    """Everything that does not need the real clip: groups, hands, face (inner part of the clip)."""
+    poses = inner(clip.poses)
+    joints = body_frame_joints(poses, skeleton)
+    return {"groups": group_stats(poses), "hands": hand_stats(joints), "face": face_stats(inner(clip.expressions))}
+
+
+def protocol_metrics(clip: M.MotionClip, real: M.MotionClip, speech, mean_speed: np.ndarray) -> dict:
+    """L1div, BeatAlign and the kinetic FGD of ``clip`` and of the real clip (gesture.eval.metrics' reference protocol);
+    ``speech``: the clip's speech (``gesture.eval.metrics.load_speech``)."""
+    from gesture.eval.fgd import KineticGeometricEncoder, fgd
+
+    pair = M.prepare_pair(clip, real)
+    onsets = M.beat_align_onsets_s(speech, len(pair.gt_joints))
+    return {"l1div": M.l1_div(pair.pred_joints), "beat_align": M.beat_align(pair.pred_joints, onsets, mean_speed),
+            "fgd_kinetic": fgd(KineticGeometricEncoder(), pair.pred_poses, pair.pred_joints, pair.gt_poses,
+                               pair.gt_joints),
+            "real_l1div": M.l1_div(pair.gt_joints),
+            "real_beat_align": M.beat_align(pair.gt_joints, onsets, mean_speed)}
+
+
+def _ratio(value: float, reference: float) -> Optional[float]:
+    return None if reference == 0 or not math.isfinite(reference) else value / reference
+
+
+def ratios(stats: dict, real: dict) -> dict:
+    """The same nested layout with every scalar divided by the real clip's; positions (``*_m``, which may be near
+    zero) are given as differences instead, under ``<key>_minus_real``."""
+    out = {}
+    for key, value in stats.items():
+        if isinstance(value, dict):
+            out[key] = ratios(value, real[key])
+        elif key.endswith("_m"):
+            out[f"{key}_minus_real"] = float(value) - float(real[key])
+        else:
+            out[key] = _ratio(float(value), float(real[key]))
+    return out
+
+
+def goal_check(entry: dict, real_beat_align: float) -> dict:
+    """Issue 18's goals for the agent: group ratios in 0.67-1.5, L1div within 25 %, BeatAlign >= real - 0.15."""
+    r = entry["ratios"]["groups"]
+    group_ok = all(0.67 <= r[g][k] <= 1.5 for g in GOAL_GROUPS for k in r[g])
+    calib_ok = all(0.8 <= v <= 1.25 for g in GOAL_GROUPS for v in r[g].values())
+    return {
+        "groups_within_0.67_1.5": group_ok,
+        "groups_within_0.8_1.25": calib_ok,
+        "l1div_within_25pct": abs(entry["ratios"]["l1div"] - 1) <= 0.25,
+        "l1div_within_15pct": abs(entry["ratios"]["l1div"] - 1) <= 0.15,
+        "beat_align_within_0.15": entry["protocol"]["beat_align"] >= real_beat_align - 0.15,
+    }
+
+
+# ---------------------------------------------------------------- the three motions
+
+
+def synthetic_reference(wav: Path, n_frames: int, seed: int, words=None) -> M.MotionClip:
+    from gesture.synth.recording import motion_for_recording
+
+    _, motion = motion_for_recording(wav, seed=seed, words=words)
+    return cut(canonical(M.MotionClip(motion.poses, motion.trans, motion.expressions, MOTION_FPS)), n_frames)
+
+
+def through_codecs(clip: M.MotionClip, codec_dir: Path) -> M.MotionClip:
+    """``clip`` encoded and decoded by the codecs in ``codec_dir``: the most of it that the agent's tokens can carry."""
+    from gesture.codec.evaluation import reconstruct
+    from gesture.lm.codecs import REGIONS, load_codecs
+    from gesture.body.regions import features_to_motion, motion_to_features
+
+    codecs = load_codecs(codec_dir)
+    features = motion_to_features(clip.poses, clip.trans, clip.expressions, MOTION_FPS)  # region -> (T, F)
+    with torch.no_grad():
+        recon = {r: reconstruct(codecs[r], torch.from_numpy(features[r])).numpy() for r in REGIONS}
+    poses, trans, expressions = features_to_motion(recon["upper"], recon["lower"], recon["face"])
+    return canonical(M.MotionClip(poses, trans, expressions, MOTION_FPS))
+
+
+def clip_words(wav: Path, cache: Path) -> list:
+    """The recording's recognised words (gesture.synth.recording), kept in ``cache`` (JSON) for re-runs."""
+    from gesture.synth.recording import TimedWord, recognised_words
+
+    if cache.is_file():
+        return [TimedWord(**w) for w in json.loads(cache.read_text())]
+    words = recognised_words(wav)
+    cache.write_text(json.dumps([vars(w) for w in words]))
+    return words
+
+
+def baseline_reference(real: M.MotionClip, seed: int) -> M.MotionClip:
+    """The real clip's mean pose, held, plus smooth noise of BASELINE_NOISE_RAD on every joint axis."""
+    q = axis_angle_to_quaternion(real.poses.astype(np.float64))  # (T, 55, 4)
+    q = np.where((q * q[:1]).sum(-1, keepdims=True) < 0, -q, q)
+    mean = q.mean(0)
+    mean_aa = quaternion_to_axis_angle(mean / np.linalg.norm(mean, axis=-1, keepdims=True))  # (55, 3)
+    n = len(real.poses)
+    rng = np.random.default_rng(seed)
+    sigma = MOTION_FPS / (2 * np.pi * BASELINE_NOISE_HZ)
+    noise = gaussian_filter1d(rng.standard_normal((n, 55 * 3)), sigma, axis=0)
+    noise *= BASELINE_NOISE_RAD / noise.std(0, keepdims=True)
+    poses = mean_aa[None] + noise.reshape(n, 55, 3)
+    trans = np.repeat(real.trans.mean(0, keepdims=True), n, 0)
+    expressions = np.repeat(real.expressions.mean(0, keepdims=True), n, 0)
+    return M.MotionClip(poses.astype(np.float32), trans.astype(np.float32), expressions.astype(np.float32), MOTION_FPS)
+
+
+def speak_clip(wav: Path, seed: int, report_dir: Path, overrides: Sequence[str] = ()) -> Path:
+    """Run the agent on the recording with the playback backend (``overrides``: launch.py ``--set`` options);
+    returns its motion.npz."""
+    report_dir.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, str(ROOT / "launch.py"), "--speak", str(wav), "--headless", "--seed", str(seed),
+           "--report", str(report_dir)] + [arg for item in overrides for arg in ("--set", item)]
+    with open(report_dir / "launch.out", "w") as log:
+        subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
+    return report_dir / "motion.npz"
+
+
+def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
+                 mean_speed: np.ndarray, skeleton: Skeleton) -> dict:
+    real_desc = describe(real, skeleton)
+    report: dict = {"real": dict(real_desc, protocol={})}
+    for name, clip in motions.items():
+        desc = describe(clip, skeleton)
+        protocol = protocol_metrics(clip, real, speech, mean_speed)
+        report["real"]["protocol"] = {"l1div": protocol["real_l1div"], "beat_align": protocol["real_beat_align"]}
+        entry = dict(desc, protocol={k: protocol[k] for k in ("l1div", "beat_align", "fgd_kinetic")})
+        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "face")}, real_desc)
+        entry["ratios"]["l1div"] = protocol["l1div"] / protocol["real_l1div"]
+        entry["beat_align_minus_real"] = protocol["beat_align"] - protocol["real_beat_align"]
+        entry["hand_height_overlap"] = float(np.minimum(height_histogram(body_frame_joints(inner(clip.poses), skeleton)),
+                                                        height_histogram(body_frame_joints(inner(real.poses), skeleton))).sum())
+        entry["goals"] = goal_check(entry, protocol["real_beat_align"])
+        report[name] = entry
+    return report
+
+
+# ---------------------------------------------------------------- outputs
+
+
+def plot_speeds(real: M.MotionClip, motions: dict[str, M.MotionClip], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    samples = {"real": group_speed_samples(inner(real.poses))}
+    samples.update({name: group_speed_samples(inner(clip.poses)) for name, clip in motions.items()})
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+    bins = np.logspace(-2.5, 1.3, 50)
+    styles = {"real": ("k", 2.2), "generated": ("tab:red", 1.6), "synthetic_gt": ("tab:blue", 1.2),
+              "baseline": ("tab:gray", 1.0)}
+    for ax, group in zip(axes.flat, JOINT_GROUPS):
+        for name, per_group in samples.items():
+            colour, width = styles.get(name, ("tab:green", 1.0))
+            hist, edges = np.histogram(np.maximum(per_group[group], bins[0]), bins, density=False)
+            ax.plot(np.sqrt(edges[1:] * edges[:-1]), hist / hist.sum(), color=colour, lw=width, label=name)
+        ax.axvline(STILL_RAD_S, color="k", ls=":", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_title(group.replace("_", " + "))
+        ax.set_xlabel("angular speed (rad/s)")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("Angular speed per joint group: the real clip against motion for its speech (dotted: still)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def side_by_side_mp4(real_npz: Path, generated_npz: Path, wav: Path, path: Path, size: int = 384,
+                     camera: str = "upper") -> dict:
+    """Real clip (left) and the agent (right) with the speech, rendered by render.play's pieces."""
+    from render.mp4 import Mp4Writer
+    from render.play import EncoderThread, frame_audio, load_motion_25fps
+    from render.view import AvatarView, load_body
+
+    motions = [load_motion_25fps(real_npz), load_motion_25fps(generated_npz)]
+    n = min(len(m[0]) for m in motions)
+    audio = frame_audio(wav, n)
+    body = load_body(None)
+    views = [AvatarView(body, size, size, camera=camera) for _ in motions]
+    encoder = EncoderThread(Mp4Writer(path, 2 * size, size))
+    committed = False
+    try:
+        for i in range(n):
+            frames = [view.frame(m[0][i], m[1][i], m[2][i]) for view, m in zip(views, motions)]
+            encoder.put(np.concatenate(frames, axis=1), audio[i])  # (size, 2 size, 3)
+        committed = True
+    finally:
+        encoder.close(commit=committed)
+        for view in views:
+            view.close()
+    return {"frames": n, "path": str(path)}
+
+
+def _json_safe(value):
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (float, np.floating)):
+        return None if not math.isfinite(float(value)) else round(float(value), 5)
+    return value
+
+
+def format_table(report: dict) -> str:
+    names = [k for k in report if k not in ("real", "meta")]
+    lines = [f"{'ratio to real':30s}" + "".join(f"{n:>32s}" for n in names)]
+    for group in JOINT_GROUPS:
+        for key in report["real"]["groups"][group]:
+            row = [report[n]["ratios"]["groups"][group][key] for n in names]
+            lines.append(f"{group + ' ' + key:30s}" + "".join(f"{v:32.2f}" for v in row))
+    for section in ("hands", "face"):
+        for key in report[names[0]]["ratios"][section]:
+            row = [report[n]["ratios"][section][key] for n in names]
+            lines.append(f"{key:30s}" + "".join(f"{'none':>32s}" if v is None else f"{v:32.2f}" for v in row))
+    lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:32.2f}" for n in names))
+    lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:32.2f}" for n in names))
+    lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:32.3f}" for n in names))
+    lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:32.3f}" for n in names))
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m gesture.realism", description=__doc__.splitlines()[0])
+    p.add_argument("--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline")
+    p.add_argument("--out", help="directory for realism.json, speeds.png, side_by_side.mp4 and the agent's run")
+    p.add_argument("--motion", help="reuse this motion.npz of the agent instead of running launch.py --speak")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="passed to launch.py (e.g. gesture.lm_checkpoint=runs/x/gesture_lm)")
+    p.add_argument("--synthetic", help="reuse this motion npz as the synthetic reference instead of generating it")
+    p.add_argument("--codecs", default=str(ROOT / "checkpoints" / "codecs"),
+                   help="the agent's codecs, for the real clip's reconstruction (the ceiling)")
+    p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip, without extension (.npz and .wav)")
+    p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
+    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    out = Path(args.out) if args.out else ROOT / "runs" / f"realism_seed{args.seed}"
+    real_npz, wav = Path(args.clip + ".npz"), Path(args.clip + ".wav")
+    try:
+        given = tuple(Path(x) for x in (args.motion, args.synthetic) if x)
+        for path in (real_npz, wav, MEAN_SPEED_NPY) + given:
+            if not path.is_file():
+                raise DataError(path, "not found")
+        out.mkdir(parents=True, exist_ok=True)
+        generated_npz = Path(args.motion) if args.motion else speak_clip(wav, args.seed, out / "agent", args.set)
+        skeleton = Skeleton.default()
+        real, generated = load_clip(real_npz), load_clip(generated_npz)
+        n = min(len(real.poses), len(generated.poses))
+        real = cut(real, n)
+        synthetic = (cut(load_clip(args.synthetic), n) if args.synthetic
+                     else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json")))
+        motions = {"generated": cut(generated, n)}
+        if not args.motion:  # the same agent without its micro-motion layer: what the codecs alone carry
+            plain_npz = speak_clip(wav, args.seed, out / "agent_without_micro_motion",
+                                   args.set + ["gesture.micro_motion.enabled=false"])
+            motions["generated_without_micro_motion"] = cut(load_clip(plain_npz), n)
+        motions |= {"synthetic_gt": synthetic,
+                   "baseline": baseline_reference(real, args.seed),
+                   "real_through_codecs": cut(through_codecs(real, Path(args.codecs)), n)}
+        report = build_report(real, motions, M.load_speech(wav),
+                              M.load_mean_speed(MEAN_SPEED_NPY), skeleton)
+    except (DataError, ValueError, FileNotFoundError, subprocess.CalledProcessError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    report["meta"] = {"clip": real_npz.stem, "seconds": n / MOTION_FPS, "seed": args.seed,
+                      "generated_motion": str(generated_npz), "edge_s": EDGE_S, "still_rad_s": STILL_RAD_S}
+    plot_speeds(real, motions, out / "speeds.png")
+    if not args.no_video:
+        report["meta"]["video"] = side_by_side_mp4(real_npz, generated_npz, wav, out / "side_by_side.mp4")["path"]
+    report = _json_safe(report)
+    (out / "realism.json").write_text(json.dumps(report, indent=1))
+    print(json.dumps(report) if args.json else format_table(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""Fit the synthetic agent's micro-motion to real motion (calibration.json ``micro_motion``).
+
+    python -m gesture.eval.synth_fit [--clip ../shared/data/beat2/2_scott_0_1_1] [--seeds 0 1 2] [--iterations 3]
+
+The synthetic agent is driven by the clip's own speech and word timings (gesture.synth.recording). Per
+joint of the torso, neck, head and arms, the fit matches two marginal statistics of the clip (never its frames):
+its pose diversity (the mean angle of its local rotation from its mean, gesture.eval.realism) and its median angular
+speed (rad/s). It starts from the variance per local axis that the planned motion lacks (real - planned, floored
+at a quarter of the real std) and the cutoff at which noise of that size has the real median speed, then scales
+the noise (per joint) and its cutoff multiplicatively from the measured synthetic motion (mean over ``--seeds``),
+``--iterations`` times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from dataclasses import replace
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from core.timing import MOTION_FPS  # noqa: E402
+from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
+from gesture.synth.calibration import CALIBRATION_JSON, load_calibration, to_json  # noqa: E402
+from gesture.synth.recording import motion_for_recording, recognised_words  # noqa: E402
+from gesture.synth.tracks import smooth_noise  # noqa: E402
+
+MICRO_JOINTS = (0, 3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21)  # pelvis, spine, neck, collars, head, arms
+STD_FLOOR = 0.25  # of the real std: every joint keeps some micro-motion
+MAX_STEP = 2.0  # largest multiplicative correction per iteration
+PROBE_HZ = 1.0
+MAX_CUTOFF_HZ = 3.0  # faster noise is jitter, not motion (a joint whose planned motion is already too spread, the
+# shoulders, would otherwise buy its median speed with it)
+REAL_CLIP = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "2_scott_0_1_1"
+
+
+def rotation_residuals(poses: np.ndarray) -> np.ndarray:
+    """(T, J, 3) axis-angle -> (T, J, 3): log(mean^T R_t), each joint's rotation about its chordal mean."""
+    rot = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
+    u, _, vt = np.linalg.svd(rot.mean(0))  # (J, 3, 3): projection of the mean matrix onto SO(3)
+    flip = np.ones(u.shape[:-1])  # (J, 3)
+    flip[:, 2] = np.sign(np.linalg.det(u @ vt))
+    mean = (u * flip[:, None, :]) @ vt
+    return matrix_to_axis_angle(np.swapaxes(mean, -1, -2)[None] @ rot)
+
+
+def joint_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(T, 55, 3) -> of MICRO_JOINTS: std per axis (J, 3), pose diversity (J,) and median angular speed (J,)."""
+    from gesture.eval.realism import angular_speeds, inner, pose_diversity
+
+    poses = inner(poses[:, list(MICRO_JOINTS)])
+    return rotation_residuals(poses).std(0), pose_diversity(poses), np.median(angular_speeds(poses, fps), axis=0)
+
+
+def noise_median_speed(std: np.ndarray, hz: float, n: int = 4000, fps: float = MOTION_FPS) -> float:
+    """Median angular speed (rad/s) of the micro-motion noise alone (std (3,) rad, cutoff ``hz``)."""
+    from gesture.eval.realism import angular_speeds
+
+    offsets = smooth_noise(np.random.default_rng(0), n, fps, hz, 3) * std[None]  # (n, 3)
+    return float(np.median(angular_speeds(offsets[:, None], fps)))
+
+
+def synthetic_stats(wav: Path, words, seeds, params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """joint_stats of the synthetic agent driven by the recording, averaged over ``seeds``."""
+    stats = [joint_stats(motion_for_recording(wav, seed=seed, words=words, micro=params)[1].poses) for seed in seeds]
+    return tuple(np.mean([s[k] for s in stats], 0) for k in range(3))
+
+
+def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print) -> dict[int, tuple[np.ndarray, float]]:
+    """Per joint of MICRO_JOINTS: ((3,) std rad, cutoff Hz); ``words``: the clip's timed words (else recognised)."""
+    from gesture.eval.realism import load_clip
+
+    wav = clip.with_suffix(".wav")
+    real_std, real_div, real_med = joint_stats(load_clip(clip.with_suffix(".npz")).poses)
+    words = recognised_words(wav) if words is None else words
+    base_std, _, _ = synthetic_stats(wav, words, seeds, {})
+    std = np.sqrt(np.maximum(real_std**2 - base_std**2, (STD_FLOOR * real_std) ** 2))  # (J, 3)
+    hz = np.array([PROBE_HZ * real_med[k] / noise_median_speed(std[k], PROBE_HZ) for k in range(len(MICRO_JOINTS))])
+    hz = np.minimum(hz, MAX_CUTOFF_HZ)
+    for it in range(iterations):
+        params = {j: (std[k], float(hz[k])) for k, j in enumerate(MICRO_JOINTS)}
+        _, got_div, got_med = synthetic_stats(wav, words, seeds, params)
+        log(f"iteration {it}: diversity ratio {np.round(got_div / real_div, 2).tolist()}, "
+            f"median speed ratio {np.round(got_med / real_med, 2).tolist()}")
+        std = std * np.clip(real_div / got_div, 1 / MAX_STEP, MAX_STEP)[:, None]
+        hz = np.minimum(hz * np.clip(real_med / got_med, 1 / MAX_STEP, MAX_STEP), MAX_CUTOFF_HZ)
+    return {j: (std[k], float(hz[k])) for k, j in enumerate(MICRO_JOINTS)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m gesture.eval.synth_fit", description=__doc__.splitlines()[0])
+    p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip without extension (.npz and .wav)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    p.add_argument("--iterations", type=int, default=3)
+    p.add_argument("--out", default=str(CALIBRATION_JSON))
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    clip = Path(args.clip)
+    for suffix in (".npz", ".wav"):
+        if not clip.with_suffix(suffix).is_file():
+            print(f"error: {clip.with_suffix(suffix)}: not found", file=sys.stderr)
+            return 2
+    cal = load_calibration()
+    fitted = fit(clip, tuple(args.seeds), args.iterations)
+    Path(args.out).write_text(json.dumps(to_json(replace(cal, micro_motion=fitted)), indent=1) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

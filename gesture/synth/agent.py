@@ -1,0 +1,292 @@
+"""The synthetic agent's whole-body motion for one conversation, at 25 fps.
+
+Composition (all local rotations are offsets applied on top of the BEAT2-calibrated rest posture):
+posture (stance, weight shifts, sway, breathing) -> torso FK -> arm IK to the planned wrist targets
+(gestures.py) with palm twist and wrist flexion -> leg IK to the planted feet -> fingers (hands.py) ->
+head (speaking nods on stressed words, per-sentence tilts/turns, listening nods at the user's pauses)
+-> face (jaw from the agent's speech envelope, blinks, brows, smiles, mouth shapes; face.py) -> micro-motion:
+band-limited rotation noise on the torso, neck, head and arm joints (real speakers are never still), its size
+and bandwidth per joint fitted to the real clip (calibration.json ``micro_motion``), louder with the agent's
+own speech and calmer while it listens.
+The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.ndimage import gaussian_filter1d, minimum_filter1d
+
+from core.body import NUM_JOINTS
+from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
+from gesture.body.skeleton import Skeleton, forward_kinematics
+from gesture.synth.calibration import load_calibration
+from gesture.synth.config import SynthConfig
+from gesture.synth.conversation import AGENT, USER, MIN_PAUSE_S, Conversation, activity_frames
+from gesture.synth.face import JAW_OPEN_RAD, blink_track, expressions_from_activations
+from gesture.synth.gestures import ArmTracks, plan_arms
+from gesture.synth.hands import blend_hands
+from gesture.synth.ik import TwoBoneChain
+from gesture.synth.posture import Posture, plan_posture
+from gesture.synth.tracks import KeyTrack, add_bump, smooth_noise
+
+LISTENING_ENERGY = 0.55  # relative liveliness while listening (1 while speaking)
+MICRO_LISTENING = 0.45  # micro-motion while listening, relative to speaking
+MICRO_ENVELOPE_GAIN = 0.5  # micro-motion scale 1 - gain/2 .. 1 + gain/2 with the (smoothed) speech envelope
+MICRO_ENVELOPE_SMOOTH_S = 0.3
+MICRO_GATE_LOG_STD = 0.7  # micro-motion comes and goes: its size is log-normal in time, per body part ...
+MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two, bursts between them) ...
+MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40 rad per frame at 25 fps)
+MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
+ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
+MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
+NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
+POLE_OUT, POLE_DOWN = 0.15, -0.8  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
+SIDE_JOINTS = {  # (collar, shoulder, elbow, wrist, hip, knee, ankle, foot) per side
+    "left": (13, 16, 18, 20, 1, 4, 7, 10),
+    "right": (14, 17, 19, 21, 2, 5, 8, 11),
+}
+
+
+@dataclass(frozen=True)
+class AgentMotion:
+    poses: np.ndarray  # (T, 55, 3) float32 axis-angle
+    trans: np.ndarray  # (T, 3) float32
+    expressions: np.ndarray  # (T, 100) float32
+    vad: np.ndarray  # (T,) uint8 agent voice activity
+    user_vad: np.ndarray  # (T,) uint8
+    planted: np.ndarray  # (T, 2) planned foot contacts (left, right)
+
+
+def speech_envelope(pcm: np.ndarray, sample_rate_hz: int, n_frames: int, fps: float) -> np.ndarray:
+    """(T,) RMS per motion frame normalised by its 95th percentile over voiced frames, in [0, 1]."""
+    hop = int(round(sample_rate_hz / fps))
+    padded = np.zeros(n_frames * hop, np.float64)
+    padded[: min(len(pcm), len(padded))] = pcm[: len(padded)]
+    rms = np.sqrt((padded.reshape(n_frames, hop) ** 2).mean(1))
+    voiced = rms[rms > 1e-3]
+    scale = np.percentile(voiced, 95) if len(voiced) else 1.0
+    return np.clip(gaussian_filter1d(rms / scale, 0.7), 0.0, 1.0)
+
+
+def speaking_frames(conv: Conversation, n_frames: int, fps: float) -> np.ndarray:
+    """(T,) 1 inside the agent's turns (not its backchannels)."""
+    out = np.zeros(n_frames)
+    for turn in conv.turns_of(AGENT, "turn"):
+        out[int(turn.start_s * fps): int(turn.end_s * fps) + 1] = 1.0
+    return out
+
+
+def user_pauses(conv: Conversation) -> list[float]:
+    """Times where the user pauses: after a word followed by a gap >= MIN_PAUSE_S, and at turn ends."""
+    words = conv.words_of(USER)
+    return [a.end_s for a, b in zip(words, words[1:]) if b.start_s - a.end_s >= MIN_PAUSE_S] + (
+        [words[-1].end_s] if words else [])
+
+
+def plan_head(rng: np.random.Generator, conv: Conversation, n: int, fps: float, energy: np.ndarray,
+              env: np.ndarray, speaking: np.ndarray) -> tuple[np.ndarray, list[float]]:
+    """(T, 3) head offset (pitch down +x, yaw +y, roll +z) and the times of listening nods."""
+    times = np.arange(n) / fps
+    pose = KeyTrack(np.zeros(3), max_rate=0.4)
+    for turn in conv.turns:
+        if turn.kind != "turn":
+            continue
+        for a, _ in turn.sentence_spans_s if turn.speaker == AGENT else [(turn.start_s, None)]:
+            pose.hold(a - 0.3)
+            target = (rng.uniform(-0.04, 0.04), rng.uniform(-0.12, 0.12), rng.uniform(-0.07, 0.07))
+            if turn.speaker == USER:  # attentive: slightly down, tilted
+                target = (rng.uniform(0.0, 0.06), rng.uniform(-0.05, 0.05), rng.uniform(-0.1, 0.1))
+            pose.key(a + rng.uniform(0.2, 0.6), target)
+    head = pose.evaluate(times)
+    for w in conv.words_of(AGENT):
+        if w.stressed and rng.random() < 0.3:
+            add_bump(head[:, 0], fps, w.peak_s, 0.12, 0.0, 0.22, rng.uniform(0.035, 0.08))
+    nods = []
+    pauses = user_pauses(conv) + [t.start_s for t in conv.turns_of(AGENT, "backchannel")]
+    for t in sorted(pauses):
+        idx = min(int(t * fps), n - 1)
+        if speaking[idx] > 0 or rng.random() > 0.6:
+            continue
+        start, period = t + rng.uniform(0.05, 0.3), rng.uniform(0.38, 0.5)
+        amp = rng.uniform(0.06, 0.14)
+        for k in range(int(rng.integers(1, 4))):
+            add_bump(head[:, 0], fps, start + k * period, period * 0.4, 0.0, period * 0.6, amp * 0.7**k)
+        nods.append(start)
+    head += 0.025 * smooth_noise(rng, n, fps, 0.5, 3) * energy[:, None]
+    head[:, 0] -= 0.03 * env
+    return head, nods
+
+
+SMILE_MOOD_HZ = 0.08  # the resting smile drifts slowly (a mood over ~10 s) ...
+SMILE_MOOD_RANGE = (0.0, 0.7)  # ... within this range of activation
+BROW_STRESS_PROB = 0.4  # a stressed word of the agent raises the brows with this probability
+BROW_AMOUNT = (0.5, 1.0)
+SMILE_AMOUNT = (0.5, 1.0)
+
+
+def plan_face(rng: np.random.Generator, conv: Conversation, n: int, fps: float, env: np.ndarray,
+              nods: list[float]) -> np.ndarray:
+    """(T, 100) expression coefficients.
+
+    Smiles and brow raises are frequent, large and held for a while: a face codec trained on this keeps them only
+    when they carry enough of the expressions' energy (a unit blink moves psi 13x as much as a unit smile)."""
+    low, high = SMILE_MOOD_RANGE
+    mood = low + (high - low) / (1 + np.exp(-1.5 * smooth_noise(rng, n, fps, SMILE_MOOD_HZ)[:, 0]))
+    smile = mood.copy()
+    brow, wide, pucker = np.zeros(n), np.zeros(n), np.zeros(n)
+    for t in nods:
+        if rng.random() < 0.6:
+            add_bump(smile, fps, t + 0.2, 0.3, rng.uniform(0.5, 1.8), 0.6, rng.uniform(*SMILE_AMOUNT))
+    for w in conv.words_of(AGENT):
+        add_bump(wide, fps, w.peak_s, 0.06, 0.0, max(w.end_s - w.peak_s, 0.06), rng.uniform(-0.2, 0.5))
+        add_bump(pucker, fps, w.peak_s, 0.06, 0.0, max(w.end_s - w.peak_s, 0.06), rng.uniform(-0.2, 0.4))
+        if w.stressed and rng.random() < BROW_STRESS_PROB:
+            add_bump(brow, fps, w.peak_s, 0.12, rng.uniform(0.15, 0.5), 0.35, rng.uniform(*BROW_AMOUNT))
+        if w.word.endswith("?"):
+            add_bump(brow, fps, w.start_s, 0.15, 0.3, 0.4, rng.uniform(*BROW_AMOUNT))
+    for turn in conv.turns_of(AGENT, "turn"):
+        for _, b in turn.sentence_spans_s:
+            if rng.random() < 0.4:
+                add_bump(smile, fps, b, 0.3, rng.uniform(0.5, 1.5), 0.6, rng.uniform(*SMILE_AMOUNT))
+    for t in user_pauses(conv):
+        if rng.random() < 0.25:
+            add_bump(brow, fps, t + 0.1, 0.15, 0.3, 0.4, rng.uniform(0.3, 0.7))
+    extra_blinks = [t.start_s for t in conv.turns_of(AGENT, "turn") if rng.random() < 0.5]
+    return expressions_from_activations({
+        "smile": np.clip(smile, 0.0, 1.0), "brow_raise": np.clip(brow, 0.0, 1.0), "lips_apart": 0.35 * env,
+        "mouth_wide": wide * env, "pucker": pucker * env, "blink": blink_track(rng, n, fps, extra_blinks),
+    })
+
+
+def micro_motion_scale(speaking: np.ndarray, env: np.ndarray, fps: float) -> np.ndarray:
+    """(T,) the micro-motion's scale: calmer while listening, livelier with the agent's own speech energy."""
+    turn = MICRO_LISTENING + (1 - MICRO_LISTENING) * gaussian_filter1d(speaking, 8)
+    voice = 1 + MICRO_ENVELOPE_GAIN * (gaussian_filter1d(env, MICRO_ENVELOPE_SMOOTH_S * fps) - 0.5)
+    return turn * voice
+
+
+def forearm_forward_scale(planned: np.ndarray, offset: np.ndarray, sign: float) -> np.ndarray:
+    """(T,) the share of an elbow's micro-motion ``offset`` (T, 3) that keeps its forearm pointing forwards
+    (``MIN_FOREARM_FORWARD``; the elbow never hyperextends), smoothed so that it never jumps."""
+    shares = np.linspace(1.0, 0.0, 11)
+    forward = np.stack([(planned @ _aa(k * offset))[:, 2, 0] * sign for k in shares], 1)  # (T, 11)
+    ok = forward >= MIN_FOREARM_FORWARD
+    share = np.where(ok.any(1), shares[np.argmax(ok, axis=1)], 0.0)
+    return gaussian_filter1d(minimum_filter1d(share, 9), 1.5)
+
+
+def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int, tuple[np.ndarray, float]],
+                 scale: np.ndarray) -> dict[int, np.ndarray]:
+    """Per joint, (T, 3) local rotation offsets: smooth noise of std ``params[j][0]`` (rad per axis) and cutoff
+    ``params[j][1]`` (Hz), times ``scale`` (T,) and its body part's gate (log-normal, unit mean square)."""
+    log_gate = MICRO_GATE_LOG_STD * smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(MICRO_PARTS))  # (T, parts)
+    gate = np.minimum(np.exp(log_gate - MICRO_GATE_LOG_STD**2), MICRO_GATE_MAX)  # E[gate^2] ~ 1, no wild bursts
+    part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
+    return {j: smooth_noise(rng, n, fps, hz, 3) * std[None] * (scale * gate[:, part_of.get(j, 0)])[:, None]
+            for j, (std, hz) in sorted(params.items())}
+
+
+def _aa(v) -> np.ndarray:
+    return axis_angle_to_matrix(np.asarray(v, np.float64))
+
+
+class BodySolver:
+    """Turns posture, arm tracks and head offsets into local joint rotations (T, 55, 3, 3)."""
+
+    def __init__(self, skeleton: Skeleton):
+        self.skeleton = skeleton
+        self.base = load_calibration().base_local_aa
+        rest = skeleton.rest_joints.astype(np.float64)
+        self.arm_chains, self.leg_chains = {}, {}
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            _, sh, el, wr, hip, kn, an, _ = SIDE_JOINTS[side]
+            self.arm_chains[side] = TwoBoneChain(rest[el] - rest[sh], rest[wr] - rest[el], np.array([0.0, -sign, 0.0]))
+            self.leg_chains[side] = TwoBoneChain(rest[kn] - rest[hip], rest[an] - rest[kn], np.array([1.0, 0.0, 0.0]),
+                                                 min_flex_rad=0.05, max_flex_rad=1.2)
+
+    def _fk(self, local: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        joints, transforms = forward_kinematics(self.skeleton, torch.from_numpy(local), torch.from_numpy(trans))
+        return joints.numpy(), transforms[..., :3, :3].numpy()
+
+    def solve(self, posture: Posture, arms: ArmTracks, head: np.ndarray, rest_wrist_y: float) -> np.ndarray:
+        n = len(head)
+        local = np.broadcast_to(np.eye(3), (n, NUM_JOINTS, 3, 3)).copy()
+        local[:, 0] = _aa(posture.root_offset_aa) @ _aa(self.base[0])
+        for k, j in enumerate((3, 6, 9)):
+            local[:, j] = _aa(posture.spine_offset_aa[:, k]) @ _aa(self.base[j])
+        local[:, 12] = _aa(NECK_SHARE * head) @ _aa(self.base[12])
+        local[:, 15] = _aa((1 - NECK_SHARE) * head) @ _aa(self.base[15])
+        raise_amount = np.clip((arms.wrist[..., 1] - rest_wrist_y) / 0.4, 0.0, 1.0)  # (T, 2)
+        for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
+            lift = posture.collar_lift + 0.1 * raise_amount[:, s]
+            local[:, SIDE_JOINTS[side][0]] = _aa(np.stack([0 * lift, 0 * lift, sign * lift], -1)) @ _aa(self.base[SIDE_JOINTS[side][0]])
+        joints, rots = self._fk(local, posture.trans)
+        for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
+            self._solve_arm(local, joints, rots, arms, s, side, sign)
+            self._solve_leg(local, joints, rots, posture, s, side, sign)
+        return local
+
+    def _solve_arm(self, local, joints, rots, arms: ArmTracks, s: int, side: str, sign: float) -> None:
+        collar, sh, el, wr = SIDE_JOINTS[side][:4]
+        chest_rot, chest_pos = rots[:, 9], joints[:, 9]
+        target = chest_pos + np.einsum("tij,tj->ti", chest_rot, arms.wrist[:, s])
+        ones = np.ones(len(target))
+        pole_local = np.stack([sign * (POLE_OUT + arms.elbow_out[:, s]), POLE_DOWN * ones, -ones], -1)  # elbow out and back
+        pole = np.einsum("tij,tj->ti", chest_rot, pole_local)
+        chain = self.arm_chains[side]
+        local[:, sh], theta = chain.solve(joints[:, sh], rots[:, collar], target, pole)
+        forearm = chain.bone_c / np.linalg.norm(chain.bone_c)
+        twist = -sign * arms.supination[:, s, None] * forearm  # (T, 3): supination turns the palm up
+        local[:, el] = _aa(theta[:, None] * chain.hinge_axis) @ _aa(0.5 * twist)
+        flex = np.zeros((len(target), 3))
+        flex[:, 2] = -sign * arms.flex[:, s]
+        local[:, wr] = _aa(0.5 * twist) @ _aa(flex)
+
+    def _solve_leg(self, local, joints, rots, posture: Posture, s: int, side: str, sign: float) -> None:
+        hip, knee, ankle = SIDE_JOINTS[side][4:7]
+        pelvis_rot = rots[:, 0]
+        pole = np.einsum("tij,j->ti", pelvis_rot, np.array([sign * 0.15, 0.0, 1.0]))
+        chain = self.leg_chains[side]
+        local[:, hip], theta = chain.solve(joints[:, hip], pelvis_rot, posture.ankles[:, s], pole)
+        local[:, knee] = _aa(theta[:, None] * chain.hinge_axis)
+        shin = pelvis_rot @ local[:, hip] @ local[:, knee]  # (T, 3, 3) knee world rotation
+        foot = rotation_about_y(np.full(len(theta), posture.foot_yaw[s]))
+        local[:, ankle] = np.swapaxes(shin, -1, -2) @ foot
+
+
+def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Conversation,
+                            skeleton: Skeleton | None = None,
+                            micro: dict[int, tuple[np.ndarray, float]] | None = None) -> AgentMotion:
+    """The agent's motion; ``micro`` overrides the calibrated micro-motion (``{}``: none, as the fit needs)."""
+    skeleton = skeleton or Skeleton.default()
+    fps = cfg.motion_fps
+    n = int(round(conv.duration_s * fps))
+    speaking = speaking_frames(conv, n, fps)
+    energy = LISTENING_ENERGY + (1 - LISTENING_ENERGY) * gaussian_filter1d(speaking, 8)
+    env = speech_envelope(conv.channels[AGENT], conv.sample_rate_hz, n, fps)
+    posture = plan_posture(rng, n, fps, energy, skeleton)
+    arms = plan_arms(cfg, rng, conv, n, fps, energy)
+    head, nods = plan_head(rng, conv, n, fps, energy, env, speaking)
+    expressions = plan_face(rng, conv, n, fps, env, nods)
+    params = load_calibration().micro_motion if micro is None else micro
+    offsets = micro_motion(rng, n, fps, params, micro_motion_scale(speaking, env, fps))
+    if 0 in offsets:  # the pelvis turns before the legs are solved, so the feet stay planted
+        posture.root_offset_aa = posture.root_offset_aa + offsets.pop(0)
+    solver = BodySolver(skeleton)
+    local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
+    for j, offset in offsets.items():
+        sign = ELBOW_SIDES.get(j)
+        scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]
+        local[:, j] = local[:, j] @ _aa(scale * offset)
+    poses = matrix_to_axis_angle(local)  # (T, 55, 3)
+    poses[:, 22] = solver.base[22] + np.stack([JAW_OPEN_RAD * env, 0 * env, 0 * env], -1)
+    poses[:, 23:25] = 0.0
+    poses[:, 25:55] = blend_hands(arms.hand)
+    return AgentMotion(
+        poses=poses.astype(np.float32), trans=posture.trans.astype(np.float32), expressions=expressions,
+        vad=activity_frames(conv.words_of(AGENT), n, fps), user_vad=activity_frames(conv.words_of(USER), n, fps),
+        planted=posture.planted.astype(np.uint8),
+    )
