@@ -43,11 +43,10 @@ class Violation:
 def module_names(root: Path) -> dict[str, Path]:
     """Every first-party module under `root`: dotted name -> file."""
     names = {}
-    for path in sorted(root.rglob("*.py")):
-        parts = path.relative_to(root).with_suffix("").parts
-        if parts[0] not in ROOTS or any(p.startswith(".") for p in parts):
-            continue
-        names[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    for top in sorted(ROOTS):
+        for path in sorted(root.glob(f"{top}.py")) + sorted((root / top).rglob("*.py")):
+            parts = path.relative_to(root).with_suffix("").parts
+            names[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
     return names
 
 

@@ -1,0 +1,67 @@
+"""The layers hold: no module imports upward or sideways (tests/architecture.py draws them), and no modules import
+each other in a cycle. The checker itself must catch a deliberately added upward import and a cycle."""
+
+from pathlib import Path
+
+from tests.architecture import LAYERS, component, cycles, import_graph, layer_violations
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_no_upward_import_in_the_repository():
+    violations = layer_violations(import_graph(REPO))
+    assert not violations, "\n".join(map(str, violations))
+
+
+def test_no_import_cycle_in_the_repository():
+    assert cycles(import_graph(REPO)) == []
+
+
+def test_every_module_is_in_a_layer():
+    unplaced = [m for m in import_graph(REPO) if component(m) is None]
+    assert unplaced == []
+
+
+def _tree(root: Path, files: dict[str, str]) -> Path:
+    for name, source in files.items():
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(source)
+    return root
+
+
+def test_an_added_upward_import_fails(tmp_path):
+    root = _tree(tmp_path, {
+        "core/__init__.py": "",
+        "core/timing.py": "STEP_MS = 80\n",
+        "gesture/__init__.py": "",
+        "gesture/body/__init__.py": "",
+        "gesture/body/skeleton.py": "from core.timing import STEP_MS\n",
+        "agent/__init__.py": "",
+        "agent/stage.py": "from gesture.body import skeleton\n",
+    })
+    assert layer_violations(import_graph(root)) == []
+    (root / "gesture/body/skeleton.py").write_text("def f():\n    from agent.stage import Runner\n")
+    (violation,) = layer_violations(import_graph(root))
+    assert (violation.module, violation.imported) == ("gesture.body.skeleton", "agent.stage")
+    assert "higher layer" in violation.why
+
+
+def test_a_sideways_import_between_siblings_fails():
+    graph = {"render.avatar": {"dialogue.tts"}, "dialogue.tts": set()}
+    layers = (("core",), ("dialogue", "render"))
+    (violation,) = layer_violations(graph, layers)
+    assert "same layer" in violation.why
+
+
+def test_a_cycle_is_found():
+    graph = {"gesture.eval.suite": {"gesture.eval.evaluate"}, "gesture.eval.evaluate": {"gesture.eval.suite"},
+             "gesture.eval.metrics": set()}
+    assert cycles(graph) == [["gesture.eval.evaluate", "gesture.eval.suite"]]
+
+
+def test_the_core_imports_no_stage():
+    assert LAYERS[0] == ("core",)
+    stages = {"agent", "dialogue", "gesture", "render"}
+    graph = import_graph(REPO)
+    assert not {t.split(".")[0] for m, ts in graph.items() if m.startswith("core.") for t in ts} & stages
