@@ -8,33 +8,30 @@
 
 from __future__ import annotations
 
-import os
+import argparse
+import json
+import logging
+import socket
+import sys
+import tempfile
+import time
+import uuid
+from dataclasses import asdict, replace
+from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: every stage process inherits it
+import yaml
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import logging  # noqa: E402
-import socket  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-import uuid  # noqa: E402
-from dataclasses import asdict, replace  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import yaml  # noqa: E402
-
-from core.config import ConfigError  # noqa: E402
-from core.audio_file import AudioFileError, load_audio  # noqa: E402
-from agent.io.sources import NoAudioDevice, check_input_device  # noqa: E402
-from core.bus import stage_address  # noqa: E402
-from agent.latency import format_table  # noqa: E402
-from agent.sections import AppConfig, load_app_config  # noqa: E402
-from agent.stage import SUPERVISOR  # noqa: E402
+from agent.io.sources import NoAudioDevice, check_input_device
+from agent.latency import format_table
+from agent.sections import AppConfig, load_app_config
+from agent.stage import SUPERVISOR
+from agent.supervisor import Supervisor, run_worker
+from core.audio_file import AudioFileError, load_audio
+from core.bus import stage_address
 from core.component import RunContext
-from agent.supervisor import Supervisor, run_worker  # noqa: E402
-from core.timing import SAMPLE_RATE_HZ  # noqa: E402
+from core.config import ConfigError
+from core.threads import limit_threads
+from core.timing import SAMPLE_RATE_HZ
 
 DEFAULT_CONFIG = Path(__file__).parent / "configs" / "default.yaml"
 EXIT_USAGE = 2
@@ -223,6 +220,7 @@ def _port_free(host: str, port: int) -> bool:
 
 
 def main(argv=None) -> int:
+    limit_threads()
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     try:

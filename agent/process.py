@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 from agent.sections import AppConfig
 from agent.stage import StageRunner, Topology
+from core.threads import limit_threads
 from core.component import RunContext
 
 COMPONENT_FACTORIES = {
@@ -41,19 +42,6 @@ class StageLaunch:
     @property
     def log_path(self) -> Path:
         return self.run.run_dir / f"{self.stage}.log"
-
-
-def limit_threads() -> None:
-    """One BLAS/torch thread per process: the machine has 2 cores and rendering needs most of them.
-
-    The variables are read when numpy or torch load; torch is pinned again once a component has loaded it
-    (a stage that never uses torch does not pay for importing it).
-    """
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        torch.set_num_threads(1)
 
 
 def load_factory(path: str) -> Callable[..., Any]:

@@ -12,17 +12,17 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
-import os
 import tempfile
 import time
 
 import numpy as np
 import zmq
 
-from core.bus import Publisher, Subscriber
 from agent.latency import percentiles
-from core.messages import Command, Control, GestureStep, RenderFrame
 from bench.machine import machine_report
+from core.bus import Publisher, Subscriber
+from core.messages import Command, Control, GestureStep, RenderFrame
+from core.threads import limit_threads
 
 FRAME_SIDE = 512
 
@@ -42,7 +42,7 @@ MESSAGES = {"gesture.step": gesture_message, "render.frame_512": frame_message}
 
 
 def publish(address: str, kind: str, count: int, spacing_s: float, joined, finished) -> None:
-    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    limit_threads()
     pub = Publisher(zmq.Context.instance(), address, "bench", lossless=True)
     while not joined.is_set():
         pub.send(Control(command=Command.HEARTBEAT))

@@ -23,22 +23,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
 from bench.machine import BaselineMatmul, machine_report, memory_read_bandwidth_gbps, percentiles_ms, read_floor_ms
-from core.body import REGIONS  # noqa: E402
-from gesture.codec.build import build_codec, count_parameters  # noqa: E402
-from gesture.codec.config import load_codec_config  # noqa: E402
-from gesture.codec.inference import INFERENCE_DTYPES, inference_codec  # noqa: E402
-from gesture.codec.streaming import StreamingDecoder  # noqa: E402
-from gesture.nn.weights import kernels_used, stored_weights  # noqa: E402
+from core.body import REGIONS
+from core.threads import limit_threads
+from gesture.codec.build import build_codec, count_parameters
+from gesture.codec.config import load_codec_config
+from gesture.codec.inference import INFERENCE_DTYPES, inference_codec
+from gesture.codec.streaming import StreamingDecoder
+from gesture.nn.weights import kernels_used, stored_weights
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG_DIR = REPO / "configs" / "codec"
@@ -115,6 +113,7 @@ def quality(dtypes: list[str]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
+    limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"])
     parser.add_argument("--steps", type=int, default=300)
@@ -126,7 +125,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--quality", action="store_true", help="also measure what each prepared dtype costs")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     results = {"threads": torch.get_num_threads(), "machine": machine_report(), "steps": args.steps,
                "goal_median_ms": GOAL_MEDIAN_MS, **bench(args.sizes, args.dtypes, args.prepared, args.steps,
                                                           args.warmup)}

@@ -10,22 +10,20 @@ steps is the in-run baseline: on a loaded machine it rises with the step times.
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
+import soundfile as sf
+import torch
+from scipy.signal import resample_poly
 
-import numpy as np  # noqa: E402
-import soundfile as sf  # noqa: E402
-import torch  # noqa: E402
-from scipy.signal import resample_poly  # noqa: E402
-
-from core.config import build_dataclass  # noqa: E402
-from core.timing import SAMPLE_RATE_HZ, STEP_MS, STEP_SAMPLES  # noqa: E402
-from dialogue.config import DialogueConfig  # noqa: E402
-from bench.machine import machine_report  # noqa: E402
-from dialogue.local_backend import LocalBackend  # noqa: E402
+from bench.machine import machine_report
+from core.config import build_dataclass
+from core.threads import limit_threads
+from core.timing import SAMPLE_RATE_HZ, STEP_MS, STEP_SAMPLES
+from dialogue.config import DialogueConfig
+from dialogue.local_backend import LocalBackend
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 RECORDINGS = (SHARED_DATA / "speech" / "librivox_0870.wav", SHARED_DATA / "beat2" / "2_scott_0_1_1.wav")
@@ -107,6 +105,7 @@ def run(beat2_s: float, pause_s: float) -> dict:
 
 
 def main(argv=None) -> None:
+    limit_threads()
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--beat2-s", type=float, default=12.0, help="seconds of the BEAT2 speech used as the second turn")

@@ -22,26 +22,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from typing import Optional
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # an entry point: before numpy loads OpenBLAS
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
 from bench.machine import BaselineMatmul, machine_report, memory_read_bandwidth_gbps, percentiles_ms, read_floor_ms
-from core.body import REGIONS  # noqa: E402
-from core.config import build_dataclass, load_yaml  # noqa: E402
-from core.spec import MOSHI_SPEC, ConditionSpec  # noqa: E402
-from core.timing import STEP_MS  # noqa: E402
-from gesture.codec.build import build_codec  # noqa: E402
-from gesture.codec.config import CodecConfig, load_codec_config  # noqa: E402
-from gesture.generator import GestureGenerator  # noqa: E402
-from gesture.lm.config import LMConfig, LMFileConfig  # noqa: E402
-from gesture.lm.model import GestureLM  # noqa: E402
-from gesture.nn.weights import kernels_used, stored_weights  # noqa: E402
+from core.body import REGIONS
+from core.config import build_dataclass, load_yaml
+from core.spec import MOSHI_SPEC, ConditionSpec
+from core.threads import limit_threads
+from core.timing import STEP_MS
+from gesture.codec.build import build_codec
+from gesture.codec.config import CodecConfig, load_codec_config
+from gesture.generator import GestureGenerator
+from gesture.lm.config import LMConfig, LMFileConfig
+from gesture.lm.model import GestureLM
+from gesture.nn.weights import kernels_used, stored_weights
 
 CFG_SCALE = 1.3
 DTYPES = ("float32", "bfloat16", "int8")
@@ -136,13 +134,13 @@ def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -
 
 
 def main(argv: Optional[list[str]] = None) -> None:
+    limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--steps", type=int, default=200, help="timed steps of the cached generator")
     parser.add_argument("--naive-steps", type=int, default=10, help="timed steps of the naive baseline")
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"], choices=["reference", "small"])
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     bandwidth = memory_read_bandwidth_gbps()
     report = {"machine": machine_report(), "memory_read_GBps": round(bandwidth, 2), "cfg_scale": CFG_SCALE,
               "step_budget_ms": STEP_MS,

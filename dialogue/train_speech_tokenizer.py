@@ -8,7 +8,6 @@ plus a commitment term. Held out: librivox_0870.wav (real read speech) and unsee
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import torch
 from einops import rearrange
 from scipy.signal import resample_poly
 
+from core.threads import limit_threads
 from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, TokenizerShape
 from dialogue.tts import EspeakTts
@@ -202,7 +202,7 @@ def train(out: Path, iterations: int, n_sentences: int, seed: int, batch: int, s
 
 
 def main(argv=None) -> None:
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    limit_threads()
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=DEFAULT_CHECKPOINT)
     p.add_argument("--iterations", type=int, default=3000)

@@ -25,4 +25,3 @@ def select_platform(platform: str) -> None:
             f"OpenGL was already imported with PYOPENGL_PLATFORM={current!r}; {platform!r} must be chosen "
             "before any OpenGL/pyrender import (one platform per process)")
     os.environ["PYOPENGL_PLATFORM"] = platform
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

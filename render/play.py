@@ -14,7 +14,6 @@ missing or non-audio WAV, a bad size or time) gets one line and exit code 2.
 from __future__ import annotations
 
 import argparse
-import os
 import queue
 import sys
 import threading
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.threads import limit_threads
 from core.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
 from render.renderer import CAMERA_PRESETS
 
@@ -185,7 +185,7 @@ def check_inputs(args: argparse.Namespace) -> int:
 
 
 def main(argv=None) -> int:
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    limit_threads()
     p = argparse.ArgumentParser(prog="python -m render.play", description=__doc__.splitlines()[0])
     p.add_argument("motion", help="BEAT2/SMPL-X npz with poses (T, 165), trans, expressions, mocap_frame_rate")
     p.add_argument("--wav", help="speech to put in the audio track (any rate, mono or stereo)")
@@ -201,9 +201,7 @@ def main(argv=None) -> int:
     p.add_argument("--start", type=float, default=0.0, help="start time in seconds")
     p.add_argument("--seconds", type=float, help="render only this many seconds")
     args = p.parse_args(argv)
-    import torch
 
-    torch.set_num_threads(1)
     from core.audio_file import AudioFileError
     from core.errors import DataError
     from render.body_model import BodyModelError

@@ -187,7 +187,8 @@ def page_url(host: str, port: int, tls: bool = False) -> str:
 
 def dashboard_main(launch: DashboardLaunch) -> None:
     """The process entry point (multiprocessing spawn target)."""
-    from agent.process import die_with_parent, limit_threads, redirect_output, remove_ipc_dir_if_orphaned
+    from agent.process import die_with_parent, redirect_output, remove_ipc_dir_if_orphaned
+    from core.threads import limit_threads
 
     die_with_parent()
     supervisor_pid = os.getppid()

@@ -23,23 +23,22 @@ import os
 import sys
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel as DDP
+from tqdm import tqdm
 
-import torch  # noqa: E402
-import torch.distributed as dist  # noqa: E402
-from torch.nn.parallel import DistributedDataParallel as DDP  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from core.body import REGIONS  # noqa: E402
-from core.config import ConfigError  # noqa: E402
-from gesture.body.skeleton import Skeleton  # noqa: E402
-from gesture.codec.build import build_codec  # noqa: E402
-from gesture.codec.checkpoint import MODEL_FILE, load_optimizer, save_codec, save_optimizer  # noqa: E402
-from gesture.codec.config import CodecFileConfig, load_codec_config  # noqa: E402
-from gesture.codec.data import load_motion_splits, sample_batch  # noqa: E402
-from gesture.codec.evaluation import evaluate  # noqa: E402
-from gesture.codec.losses import RegionLoss, balanced_joint_weights  # noqa: E402
-from gesture.codec.model import GestureCodec  # noqa: E402
+from core.body import REGIONS
+from core.config import ConfigError
+from core.threads import limit_threads
+from gesture.body.skeleton import Skeleton
+from gesture.codec.build import build_codec
+from gesture.codec.checkpoint import MODEL_FILE, load_optimizer, save_codec, save_optimizer
+from gesture.codec.config import CodecFileConfig, load_codec_config
+from gesture.codec.data import load_motion_splits, sample_batch
+from gesture.codec.evaluation import evaluate
+from gesture.codec.losses import RegionLoss, balanced_joint_weights
+from gesture.codec.model import GestureCodec
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
 
@@ -176,6 +175,7 @@ def _summary(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    limit_threads()
     parser = argparse.ArgumentParser(description="Train a gesture region codec.")
     parser.add_argument("--config", required=True, type=Path, help="configs/codec/*.yaml")
     parser.add_argument("--region", required=True, choices=REGIONS)
@@ -190,7 +190,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smplx-model", type=Path, help="a real SMPL-X model file for the FK joints")
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     try:
         config = load_codec_config(args.config)
     except ConfigError as err:
@@ -260,6 +259,3 @@ def _run(trainer: CodecTrainer, steps: int, resume: bool) -> None:
                 tqdm.write(_summary(trainer.evaluate()), file=sys.stderr)
                 trainer.save()
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -6,29 +6,26 @@ Re-running reuses every take whose sources and chunking options are unchanged.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+from tqdm import tqdm
 
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from core.config import ConfigError  # noqa: E402
-from core.errors import DataError  # noqa: E402
-from gesture.data.beat2 import find_takes  # noqa: E402
-from gesture.data.cache import build_cache  # noqa: E402
-from gesture.data.config import DataConfig, load_data_config  # noqa: E402
+from core.config import ConfigError
+from core.errors import DataError
+from core.threads import limit_threads
+from gesture.data.beat2 import find_takes
+from gesture.data.cache import build_cache
+from gesture.data.config import DataConfig, load_data_config
 
 
 def main(argv=None) -> int:
+    limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", help="BEAT2 language directory, or a directory of <id>.npz/.wav files")
     parser.add_argument("--out", help="cache directory")
     parser.add_argument("--config", help="YAML with data options (configs/data/*.yaml); --root/--out override it")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     try:
         cfg = load_data_config(args.config) if args.config else DataConfig()
     except ConfigError as err:

@@ -12,18 +12,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import torch  # noqa: E402
-
-from core.errors import DataError  # noqa: E402
-from gesture.eval import metrics as M  # noqa: E402
-from gesture.eval.fgd import KineticGeometricEncoder  # noqa: E402
-from gesture.eval.scores import evaluate_motion  # noqa: E402
+from core.errors import DataError
+from core.threads import limit_threads
+from gesture.eval import metrics as M
+from gesture.eval.fgd import KineticGeometricEncoder
+from gesture.eval.scores import evaluate_motion
 
 DEFAULT_MEAN_SPEED = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "mean_vel_smplxflame_30.npy"
 
@@ -38,6 +35,7 @@ def _encoders(args) -> list:
 
 
 def main(argv=None) -> int:
+    limit_threads()
     argv = sys.argv[1:] if argv is None else list(argv)
     if "--suite" in argv:
         at = argv.index("--suite")
@@ -60,7 +58,6 @@ def main(argv=None) -> int:
     parser.add_argument("--fgd-encoder", help="BEAT2 AESKConv_240_100.bin for the learned FGD")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     try:
         pred, gt = M.load_motion_clip(args.motion), M.load_motion_clip(args.gt)
         speech = M.load_speech(args.wav) if args.wav else None
@@ -82,6 +79,3 @@ def main(argv=None) -> int:
 def _one_line(err: Exception) -> str:
     return " ".join(str(err).split())
 
-
-if __name__ == "__main__":
-    sys.exit(main())

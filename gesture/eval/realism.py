@@ -35,26 +35,24 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Optional, Sequence
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
+import torch
+from scipy.ndimage import gaussian_filter1d, median_filter
+from scipy.signal import find_peaks
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from scipy.ndimage import gaussian_filter1d, median_filter  # noqa: E402
-from scipy.signal import find_peaks  # noqa: E402
-
-from core.errors import DataError  # noqa: E402
-from core.timing import MOTION_FPS  # noqa: E402
-from gesture.eval import metrics as M  # noqa: E402
-from gesture.body.motion import canonicalize  # noqa: E402
-from gesture.body.rotation import axis_angle_to_matrix, axis_angle_to_quaternion, quaternion_to_axis_angle  # noqa: E402
-from gesture.body.skeleton import Skeleton, forward_kinematics_np  # noqa: E402
+from core.errors import DataError
+from core.threads import limit_threads
+from core.timing import MOTION_FPS
+from gesture.body.motion import canonicalize
+from gesture.body.rotation import axis_angle_to_matrix, axis_angle_to_quaternion, quaternion_to_axis_angle
+from gesture.body.skeleton import Skeleton, forward_kinematics_np
+from gesture.eval import metrics as M
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED_BEAT2 = ROOT.parent / "shared" / "data" / "beat2"
@@ -437,6 +435,7 @@ def format_table(report: dict) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    limit_threads()
     p = argparse.ArgumentParser(prog="python -m gesture.realism", description=__doc__.splitlines()[0])
     p.add_argument("--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline")
     p.add_argument("--out", help="directory for realism.json, speeds.png, side_by_side.mp4 and the agent's run")
@@ -450,7 +449,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     args = p.parse_args(argv)
-    torch.set_num_threads(1)
     out = Path(args.out) if args.out else ROOT / "runs" / f"realism_seed{args.seed}"
     real_npz, wav = Path(args.clip + ".npz"), Path(args.clip + ".wav")
     try:
@@ -489,6 +487,3 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     print(json.dumps(report) if args.json else format_table(report))
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -24,34 +24,32 @@ import argparse
 import dataclasses
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from core.body import REGIONS  # noqa: E402
-from core.config import build_dataclass, load_yaml  # noqa: E402
-from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES  # noqa: E402
-from gesture.eval import metrics as M  # noqa: E402
-from gesture.body.motion import canonicalize  # noqa: E402
-from gesture.body.regions import features_to_motion, motion_to_features  # noqa: E402
-from gesture.body.skeleton import Skeleton  # noqa: E402
-from gesture.codec.evaluation import reconstruct  # noqa: E402
-from gesture.codec.model import GestureCodec  # noqa: E402
-from gesture.config import GestureConfig  # noqa: E402
-from gesture.data.audio import load_audio  # noqa: E402
-from gesture.data.beat2 import Take, find_takes, read_motion  # noqa: E402
-from gesture.data.chunks import motion_at_fps  # noqa: E402
-from gesture.generator import GestureGenerator  # noqa: E402
-from gesture.lm.codecs import load_codecs  # noqa: E402
-from gesture.lm.tokenize import TokenizedTake, agent_audio_path, tokenize_take  # noqa: E402
+from core.body import REGIONS
+from core.config import build_dataclass, load_yaml
+from core.threads import limit_threads
+from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
+from gesture.body.motion import canonicalize
+from gesture.body.regions import features_to_motion, motion_to_features
+from gesture.body.skeleton import Skeleton
+from gesture.codec.evaluation import reconstruct
+from gesture.codec.model import GestureCodec
+from gesture.config import GestureConfig
+from gesture.data.audio import load_audio
+from gesture.data.beat2 import Take, find_takes, read_motion
+from gesture.data.chunks import motion_at_fps
+from gesture.eval import metrics as M
+from gesture.generator import GestureGenerator
+from gesture.lm.codecs import load_codecs
+from gesture.lm.tokenize import TokenizedTake, agent_audio_path, tokenize_take
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -398,6 +396,7 @@ def _json_safe(value):
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    limit_threads()
     defaults = SuiteOptions()
     parser = argparse.ArgumentParser(description="Quality report of the shipped default agent.")
     parser.add_argument("--suite", choices=["default"], default="default")
@@ -426,6 +425,3 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         args.out.write_text(json.dumps(report, indent=1))
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -15,21 +15,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from dataclasses import replace
 import sys
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from core.timing import MOTION_FPS  # noqa: E402
-from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle  # noqa: E402
-from gesture.synth.calibration import CALIBRATION_JSON, load_calibration, to_json  # noqa: E402
-from gesture.synth.recording import motion_for_recording, recognised_words  # noqa: E402
-from gesture.synth.tracks import smooth_noise  # noqa: E402
+from core.threads import limit_threads
+from core.timing import MOTION_FPS
+from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from gesture.synth.calibration import CALIBRATION_JSON, load_calibration, to_json
+from gesture.synth.recording import motion_for_recording, recognised_words
+from gesture.synth.tracks import smooth_noise
 
 MICRO_JOINTS = (0, 3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21)  # pelvis, spine, neck, collars, head, arms
 STD_FLOOR = 0.25  # of the real std: every joint keeps some micro-motion
@@ -94,13 +91,13 @@ def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print)
 
 
 def main(argv=None) -> int:
+    limit_threads()
     p = argparse.ArgumentParser(prog="python -m gesture.eval.synth_fit", description=__doc__.splitlines()[0])
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip without extension (.npz and .wav)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--iterations", type=int, default=3)
     p.add_argument("--out", default=str(CALIBRATION_JSON))
     args = p.parse_args(argv)
-    torch.set_num_threads(1)
     clip = Path(args.clip)
     for suffix in (".npz", ".wav"):
         if not clip.with_suffix(suffix).is_file():

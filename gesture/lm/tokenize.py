@@ -24,31 +24,29 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from core.body import REGIONS  # noqa: E402
-from core.errors import DataError  # noqa: E402
-from core.spec import ConditionSpec  # noqa: E402
-from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES  # noqa: E402
-from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer  # noqa: E402
-from dialogue.text_vocab import LOCAL_SPEC, word_token  # noqa: E402
-from gesture.body.motion import canonicalize  # noqa: E402
-from gesture.body.regions import motion_to_features  # noqa: E402
-from gesture.codec.model import GestureCodec  # noqa: E402
-from gesture.data.audio import load_audio  # noqa: E402
-from gesture.data.beat2 import Take, Word, find_takes, read_motion, read_words  # noqa: E402
-from gesture.data.chunks import motion_at_fps  # noqa: E402
-from gesture.lm.codecs import load_codecs  # noqa: E402
-from gesture.lm.data import write_recording, write_spec  # noqa: E402
+from core.body import REGIONS
+from core.errors import DataError
+from core.spec import ConditionSpec
+from core.threads import limit_threads
+from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
+from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer
+from dialogue.text_vocab import LOCAL_SPEC, word_token
+from gesture.body.motion import canonicalize
+from gesture.body.regions import motion_to_features
+from gesture.codec.model import GestureCodec
+from gesture.data.audio import load_audio
+from gesture.data.beat2 import Take, Word, find_takes, read_motion, read_words
+from gesture.data.chunks import motion_at_fps
+from gesture.lm.codecs import load_codecs
+from gesture.lm.data import write_recording, write_spec
 
 AGENT_WAV_SUFFIX = "_agent"
 AGENT_SPEAKER_NAMES = ("agent",)
@@ -210,6 +208,7 @@ def tokenize_directory(root: Path, codecs_dir: Path, out_dir: Path, splits: Sequ
 
 
 def main(argv=None) -> int:
+    limit_threads()
     from tqdm import tqdm
 
     parser = argparse.ArgumentParser(description="Tokenize a BEAT2-layout directory for gesture LM training.")
@@ -220,7 +219,6 @@ def main(argv=None) -> int:
     parser.add_argument("--speaker", type=int, help="one speaker index for every take (default: sorted names)")
     parser.add_argument("--speech-tokenizer", type=Path, default=DEFAULT_CHECKPOINT)
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     for flag, path in (("--root", args.root), ("--codecs", args.codecs)):
         if not path.is_dir():
             print(f"error: {flag} {path}: not a directory", file=sys.stderr)
@@ -234,6 +232,3 @@ def main(argv=None) -> int:
     print(json.dumps(summary))
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

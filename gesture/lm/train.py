@@ -22,6 +22,7 @@ from typing import Optional
 import torch
 
 from core.config import ConfigError, build_dataclass, load_yaml
+from core.threads import limit_threads
 from gesture.lm.checkpoint import load_lm, load_train_state, save_lm, save_train_state
 from gesture.lm.config import LMConfig, LMFileConfig, LMTrainConfig
 from gesture.lm.data import LMBatch, LMDataset
@@ -173,6 +174,7 @@ def _checkpoint(model, optimizer, scheduler, generator, history, out_dir: Path, 
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, required=True, help="configs/lm/*.yaml")
     parser.add_argument("--data", type=Path, required=True, help="directory of npz recordings (gesture.lm.data)")
@@ -181,8 +183,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--epochs", type=int, default=None, help="override train.epochs")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    torch.set_num_threads(1)
     try:
         file_cfg = build_dataclass(LMFileConfig, load_yaml(args.config), str(args.config))
     except ConfigError as err:
@@ -201,6 +201,3 @@ def _usage_error(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -30,11 +30,11 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-import torch
 from safetensors import safe_open
 
 from core.body import REGIONS
 from core.config import ConfigError
+from core.threads import limit_threads
 from core.timing import STEP_SAMPLES
 from gesture.body.regions import REGION_DIMS
 from gesture.codec.checkpoint import save_codec
@@ -218,8 +218,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
+    limit_threads()
     args = parse_args(argv)
-    torch.set_num_threads(1)
     try:
         report = convert_release(args.experiment_dir, args.out, codec_dir=args.codec_dir, glm=args.glm,
                                  codec_files={r: getattr(args, r) for r in REGIONS}, character=args.character,
@@ -249,6 +249,3 @@ def _print_summary(out: Path, report: dict) -> None:
         print("run it with: python launch.py --mic --config configs/miburi-release.yaml "
               f"--set gesture.speaker={speaker}")
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -29,24 +29,22 @@ import argparse
 import csv
 import dataclasses
 import json
-import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Iterable, Optional
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np
+import soundfile as sf
+import torch
+from tqdm import tqdm
 
-import numpy as np  # noqa: E402
-import soundfile as sf  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from core.config import ConfigError  # noqa: E402
-from gesture.synth.agent import AgentMotion, synthesize_agent_motion  # noqa: E402
-from gesture.synth.config import SynthConfig, load_synth_config  # noqa: E402
-from gesture.synth.conversation import AGENT, USER, Conversation, Turn, build_conversation  # noqa: E402
+from core.config import ConfigError
+from core.threads import limit_threads
+from gesture.synth.agent import AgentMotion, synthesize_agent_motion
+from gesture.synth.config import SynthConfig, load_synth_config
+from gesture.synth.conversation import AGENT, USER, Conversation, Turn, build_conversation
 
 MOTION_DIR, AUDIO_DIR, TRANSCRIPT_DIR = "smplxflame_25", "wave16k", "whisper_transcription"
 NUM_BETAS = 300
@@ -153,6 +151,7 @@ def generate_dataset(cfg: SynthConfig, root: Path | str, n_sessions: int, minute
 
 
 def main(argv: Optional[list[str]] = None) -> int:
+    limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output directory (BEAT2 layout)")
     parser.add_argument("--sessions", type=int, default=40)
@@ -161,7 +160,6 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--config", help="YAML with synthetic options (configs/data/synthetic.yaml)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (the output does not depend on it)")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     try:
         cfg = load_synth_config(args.config) if args.config else SynthConfig()
         ids = generate_dataset(cfg, args.out, args.sessions, args.minutes, args.seed, args.jobs,
@@ -172,6 +170,3 @@ def main(argv: Optional[list[str]] = None) -> int:
     print(f"{args.out}: {len(ids)} sessions of {args.minutes:g} min")
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

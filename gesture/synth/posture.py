@@ -16,8 +16,8 @@ from gesture.body.skeleton import Skeleton
 from gesture.synth.tracks import KeyTrack, add_bump, smooth_noise
 
 TRANS_Y_M = 1.27  # pelvis translation height: legs slightly bent, feet on the floor (see gesture.body.skeleton)
-STEP_S = 0.55
-STEP_LIFT_M = (0.04, 0.06)
+FOOT_STEP_S = 0.55  # one foot step (lift, swing, plant), not the 80 ms step of the loop
+FOOT_LIFT_M = (0.04, 0.06)
 
 
 @dataclass
@@ -45,20 +45,20 @@ def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np
     planted = np.ones((n_frames, 2))
     t = rng.uniform(15.0, 45.0)
     c = np.zeros(2)
-    while t + 2 * STEP_S + 0.3 < duration:
+    while t + 2 * FOOT_STEP_S + 0.3 < duration:
         c = 0.6 * c + rng.normal(0.0, 0.06, 2)
         width = rng.uniform(0.09, 0.14)
         first = int(rng.integers(2))
         for k, foot in enumerate((first, 1 - first)):
-            start = t + k * (STEP_S + 0.1)
+            start = t + k * (FOOT_STEP_S + 0.1)
             side = 1.0 if foot == 0 else -1.0
             feet[foot].hold(start)
-            feet[foot].key(start + STEP_S, (c[0] + side * width, ankle_z + c[1] + rng.normal(0, 0.02)))
-            add_bump(lift[:, foot], fps, start + STEP_S / 2, STEP_S / 2, 0.0, STEP_S / 2, rng.uniform(*STEP_LIFT_M))
-            planted[int(start * fps): int((start + STEP_S) * fps) + 2, foot] = 0.0
+            feet[foot].key(start + FOOT_STEP_S, (c[0] + side * width, ankle_z + c[1] + rng.normal(0, 0.02)))
+            add_bump(lift[:, foot], fps, start + FOOT_STEP_S / 2, FOOT_STEP_S / 2, 0.0, FOOT_STEP_S / 2, rng.uniform(*FOOT_LIFT_M))
+            planted[int(start * fps): int((start + FOOT_STEP_S) * fps) + 2, foot] = 0.0
         centre.hold(t)
-        centre.key(t + 2 * STEP_S + 0.1, c)
-        t += 2 * STEP_S + rng.uniform(20.0, 60.0)
+        centre.key(t + 2 * FOOT_STEP_S + 0.1, c)
+        t += 2 * FOOT_STEP_S + rng.uniform(20.0, 60.0)
     xz = np.stack([f.evaluate(times) for f in feet], 1)  # (T, 2, 2)
     ankles = np.stack([xz[..., 0], ankle_y + lift, xz[..., 1]], -1)  # (T, 2, 3)
 
