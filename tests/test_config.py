@@ -64,3 +64,17 @@ def test_bad_overrides_name_the_key(override, message):
 def test_missing_config_file():
     with pytest.raises(ConfigError, match="config file not found"):
         load_app_config("configs/nope.yaml")
+
+
+def test_every_yaml_reader_names_a_missing_file(tmp_path):
+    from gesture.codec.checkpoint import read_checkpoint_config
+    from gesture.data.config import load_data_config
+    from gesture.synth.config import load_synth_config
+
+    missing = tmp_path / "nowhere.yaml"
+    for load in (load_data_config, load_synth_config):
+        with pytest.raises(ConfigError, match="nowhere.yaml"):
+            load(missing)
+    (tmp_path / "config.yaml").write_text("region: [unclosed\n")
+    with pytest.raises(ConfigError, match="config.yaml: not valid YAML"):
+        read_checkpoint_config(tmp_path)

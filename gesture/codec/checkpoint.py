@@ -16,6 +16,7 @@ import torch
 import yaml
 from safetensors.torch import load_file, save_file
 
+from core.config import load_yaml
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecFileConfig, codec_file_config_from_dict
 from gesture.codec.model import GestureCodec
@@ -36,7 +37,7 @@ def read_checkpoint_config(directory: Path) -> tuple[CodecFileConfig, str]:
     path = Path(directory) / CONFIG_FILE
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no codec config next to the checkpoint")
-    tree = yaml.safe_load(path.read_text())
+    tree = load_yaml(path)
     region = tree.pop("region", None)
     if region is None:
         raise ValueError(f"{path}: missing 'region'")

@@ -6,9 +6,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-import yaml
 
-from core.config import ConfigError, build_dataclass
+from core.config import ConfigError, build_dataclass, load_yaml
 from core.timing import MOTION_FPS
 
 AUDIO_SAMPLE_RATE_HZ = 16_000
@@ -52,6 +51,5 @@ def build_data_config(mapping: Optional[Mapping[str, Any]]) -> DataConfig:
 
 def load_data_config(path: str | Path) -> DataConfig:
     """Read a YAML file whose top level (or `data:` section) holds DataConfig options."""
-    with open(path) as f:
-        tree = yaml.safe_load(f) or {}
-    return build_data_config(tree.get("data", tree) if isinstance(tree, dict) else tree)
+    tree = load_yaml(Path(path))
+    return build_data_config(tree.get("data", tree))

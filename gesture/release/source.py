@@ -12,8 +12,9 @@ from typing import Any, Mapping
 
 import numpy as np
 import torch
-import yaml
 from safetensors import safe_open
+
+from core.config import ConfigError, load_yaml
 
 KEY_PREFIXES = ("module.", "m.")  # stripped on load, as the reference loader does
 CONFIG_FILE = "config.yaml"
@@ -108,12 +109,9 @@ def read_experiment_config(directory: Path) -> ExperimentConfig:
     if not path.is_file():
         raise ReleaseError(f"{path}: missing (the experiment's config.yaml)")
     try:
-        tree = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ReleaseError(f"{path}: not valid YAML: {e}") from None
-    if not isinstance(tree, dict):
-        raise ReleaseError(f"{path}: expected a mapping of training arguments")
-    return ExperimentConfig(path, tree)
+        return ExperimentConfig(path, load_yaml(path))
+    except ConfigError as e:
+        raise ReleaseError(str(e)) from None
 
 
 def read_speaker_map(directory: Path, n_speakers: int) -> dict[str, int]:

@@ -6,9 +6,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-import yaml
 
-from core.config import ConfigError, build_dataclass
+from core.config import ConfigError, build_dataclass, load_yaml
 from core.timing import MOTION_FPS
 
 GESTURE_FAMILIES = ("beat", "presentation", "deictic", "size", "adaptor")
@@ -72,6 +71,5 @@ def build_synth_config(mapping: Optional[Mapping[str, Any]]) -> SynthConfig:
 
 def load_synth_config(path: str | Path) -> SynthConfig:
     """Read a YAML file whose top level (or `synthetic:` section) holds SynthConfig options."""
-    with open(path) as f:
-        tree = yaml.safe_load(f) or {}
-    return build_synth_config(tree.get("synthetic", tree) if isinstance(tree, dict) else tree)
+    tree = load_yaml(Path(path))
+    return build_synth_config(tree.get("synthetic", tree))
