@@ -39,6 +39,7 @@ from gesture.codec.config import CodecConfig, load_codec_config
 from gesture.generator import GestureGenerator
 from gesture.lm.config import LMConfig, LMFileConfig
 from gesture.lm.model import GestureLM
+from gesture.lm.naive import NaiveStepper
 from gesture.nn.weights import kernels_used, stored_weights
 
 CFG_SCALE = 1.3
@@ -122,7 +123,7 @@ def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -
                        "cpu_vs_read_floor": round(whole[key]["cpu_median_ms"] / weights["read_floor_ms"], 2),
                        "vs_baseline_matmul": round(whole[key]["median_ms"] / baseline.median_ms(), 3)}
         gen.close()
-    gen = GestureGenerator(lm, codecs, cfg_scale=CFG_SCALE, engine="naive")
+    gen = GestureGenerator(lm, codecs, cfg_scale=CFG_SCALE, engine=NaiveStepper(lm.eval(), guided=True))
     result["naive_float32"] = time_steps({"naive": gen}, naive_steps, warmup=1, baseline=BaselineMatmul())["naive"]
     gen.close()
     for clock in ("", "cpu_"):

@@ -17,7 +17,7 @@ so this puts the feet near the floor.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Mapping, Optional
+from typing import Mapping, Optional
 
 import numpy as np
 import torch
@@ -30,10 +30,10 @@ from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
 from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
-from gesture.lm.naive import NaiveStepper
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
 from gesture.micro_motion import MicroMotion, is_speaking
+from gesture.nn.streaming import StreamingModule
 
 
 @dataclass
@@ -50,13 +50,15 @@ class GestureGenerator:
     """See the module docstring. `dtype` is the weight form of the step path (a key of CODEC_FORMS, see
     `gesture.nn.weights`): bfloat16 stores the LM's matrices in bfloat16 and decodes with float16 codec copies; int8 stores the LM's matrices as
     per-row int8 (logits within ~1% of float32, twice bfloat16's error) and decodes with int8 codec copies
-    (`gesture.codec.inference`). `engine="naive"` swaps in the cache-free baseline (benchmark only)."""
+    (`gesture.codec.inference`). `engine` replaces the LM's step path by another with its contract (the benchmark
+    passes the cache-free oracle, `gesture.lm.naive.NaiveStepper`)."""
 
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
                  seed: int = 0, dtype: str = "float32", idle_gate: Optional[IdleGate] = None,
-                 micro_motion: Optional[MicroMotion] = None, initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
-                 engine: Literal["cached", "naive"] = "cached") -> None:
+                 micro_motion: Optional[MicroMotion] = None,
+                 initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
+                 engine: Optional[StreamingModule] = None) -> None:
         self.sizes = lm.sizes
         self.spec = lm.spec
         self.level_slices = _level_slices(lm)
@@ -67,7 +69,8 @@ class GestureGenerator:
         if dtype not in CODEC_FORMS:
             raise ValueError(f"dtype: must be one of {', '.join(CODEC_FORMS)}, got {dtype!r}")
         lm = lm.eval()
-        self.engine = LMStepper(lm, guided, dtype) if engine == "cached" else NaiveStepper(lm, guided)
+        self.engine = engine or LMStepper(lm, guided, dtype)
+        self.engine.start_streaming(self.engine.batch)
         self.engine.set_speaker(speaker)
         self.decoders = {name: StreamingDecoder(_inference_codec(codecs[name], dtype)) for name in REGIONS}
         self.unguided = set(self.sizes.lower_levels)
@@ -80,7 +83,7 @@ class GestureGenerator:
 
     def reset(self) -> None:
         """Start a new session: caches, codec streams, translation carry, idle gate and the random stream."""
-        self.engine.reset()
+        self.engine.reset_streaming()
         for decoder in self.decoders.values():
             decoder.reset()
         if self.idle_gate is not None:
@@ -95,6 +98,7 @@ class GestureGenerator:
         self.engine.set_speaker(speaker)
 
     def close(self) -> None:
+        self.engine.stop_streaming()
         for decoder in self.decoders.values():
             decoder.close()
 

@@ -31,6 +31,9 @@ def _full_logits(model, tokens, text, audio, speaker, guided):
 
 
 def _stream_logits(engine, tokens, text, audio):
+    """Logits (B, T, K, V) of the tokens teacher-forced through a step path, continuing its stream if it has one."""
+    if not engine.is_streaming:
+        engine.start_streaming(engine.batch)
     out = []
     with torch.inference_mode():
         for t in range(tokens.shape[1]):
@@ -58,7 +61,7 @@ def test_reset_restarts_the_stream_exactly():
     tokens, text, audio = _sequence(model, 30)
     stepper = LMStepper(model, guided=True)
     first = _stream_logits(stepper, tokens, text, audio)
-    stepper.reset()
+    stepper.reset_streaming()
     assert torch.equal(_stream_logits(stepper, tokens, text, audio), first)
 
 
@@ -76,6 +79,7 @@ def test_va_head_of_the_step_path_equals_full_forward():
     with torch.no_grad():
         full = model(tokens[None], text[None], audio[None], torch.tensor([0])).va_logit[0]
     stepper = LMStepper(model, guided=False)
+    stepper.start_streaming(1)
     face = model.sizes.face_levels
     with torch.inference_mode():
         for t in range(12):
@@ -109,6 +113,8 @@ def test_guided_logits_equal_guidance_of_the_rows(dtype, tolerance, kernels):
     tokens, text, audio = _sequence(model, 8)
     with using(kernels, dtype):
         rows_engine, guided_engine = LMStepper(model, True, dtype), LMStepper(model, True, dtype)
+    rows_engine.start_streaming(2)
+    guided_engine.start_streaming(2)
 
     def check(rows, guided):
         scale = rows.abs().max() if dtype != "float32" else 1.0
@@ -129,3 +135,15 @@ def test_guided_logits_equal_guidance_of_the_rows(dtype, tolerance, kernels):
 def test_unknown_weight_dtype_names_the_option():
     with pytest.raises(ValueError, match="dtype"):
         LMStepper(tiny_lm(), guided=True, dtype="fp16")
+
+
+def test_the_step_path_follows_the_streaming_contract():
+    stepper = LMStepper(tiny_lm(), guided=True)
+    history = torch.full((stepper.sizes.n_levels,), -1)
+    with pytest.raises(RuntimeError, match="start_streaming"):
+        stepper.begin_step(history, 0, torch.zeros(8, dtype=torch.long))
+    with pytest.raises(ValueError, match="2 rows"):
+        stepper.start_streaming(1)
+    with stepper.streaming(2):
+        assert stepper.is_streaming and stepper.state.step == 0
+    assert not stepper.is_streaming

@@ -3,8 +3,8 @@
 Same function as `gesture.codec.model.LatentTransformer` in eval mode, (B, D, S) -> (B, D, S), offline or
 streaming one step per call, with: weights in a `gesture.nn.weights` form, the LayerScales folded into the output
 projections, RoPE as one complex product over q, k and v together (v's rotation is 1), and one key/value
-ring per layer read without a mask while streaming (the ring holds exactly the last `context` steps, so every
-filled slot is visible, and softmax attention does not depend on slot order). Activations, caches and the
+ring per layer (`gesture.nn.RingKVCache.push`) read without a mask while streaming (the ring holds exactly the
+last `context` steps, so every filled slot is visible). Activations, caches and the
 residual stream stay float32.
 """
 
@@ -19,7 +19,7 @@ from torch import nn
 
 from gesture.codec.model import LatentTransformer
 from gesture.nn.weights import step_weight
-from gesture.nn import StreamingModule, StreamingState, StreamingTransformerLayer, attention_mask
+from gesture.nn import RingKVCache, StreamingModule, StreamingState, StreamingTransformerLayer, attention_mask
 
 
 class _StepLayer:
@@ -63,32 +63,20 @@ def _masked_attention(allowed: torch.Tensor, qkv: torch.Tensor) -> torch.Tensor:
     return out.transpose(1, 2).flatten(0, 1).flatten(1)
 
 
-class _Ring:
-    """One layer's key/value ring (B, 2, H, C, Dh), with views made once: per slot to write, per fill to read."""
-
-    def __init__(self, batch_size: int, num_heads: int, context: int, head_dim: int) -> None:
-        self.buffer = torch.zeros(batch_size, 2, num_heads, context, head_dim)
-        self.shape = (batch_size, 3, num_heads, 1, head_dim)
-        self.slots = [self.buffer[:, :, :, s:s + 1] for s in range(context)]  # (B, 2, H, 1, Dh)
-        self.keys = [self.buffer[:, 0, :, :n] for n in range(1, context + 1)]  # (B, H, n, Dh)
-        self.values = [self.buffer[:, 1, :, :n] for n in range(1, context + 1)]
-
-    def attend(self, slot: int, filled: int, qkv: torch.Tensor) -> torch.Tensor:
-        """Write this step's k, v at `slot`, attend over the `filled` first slots (no mask needed).
-        qkv (B, 1, 3, H, Dh) -> (B, H*Dh)."""
-        qkv = qkv.view(self.shape)  # (B, 3, H, 1, Dh)
-        self.slots[slot].copy_(qkv[:, 1:])
-        out = F.scaled_dot_product_attention(qkv[:, 0], self.keys[filled - 1], self.values[filled - 1])
-        return out.flatten(1)  # (B, H, 1, Dh) -> (B, H*Dh)
+def _ring_attention(ring: RingKVCache, qkv: torch.Tensor) -> torch.Tensor:
+    """Streaming: qkv (B, 1, 3, H, Dh) -> (B, H*Dh), after this step's k, v go to the ring (no mask needed)."""
+    q, k, v = qkv[:, 0].unbind(1)  # 3 x (B, H, Dh)
+    keys, values = ring.push(k, v)  # (B, H, n, Dh)
+    return F.scaled_dot_product_attention(q[:, :, None], keys, values).flatten(1)  # (B, H, 1, Dh) -> (B, H*Dh)
 
 
 @dataclass
 class StepTransformerState(StreamingState):
-    rings: list[_Ring] = field(default_factory=list)  # one per layer
-    next_position: int = 0
+    rings: list[RingKVCache] = field(default_factory=list)  # one per layer
 
     def reset(self) -> None:
-        self.next_position = 0  # slots are overwritten before they are read again
+        for ring in self.rings:
+            ring.reset()
 
 
 class StepTransformer(StreamingModule[StepTransformerState]):
@@ -103,7 +91,7 @@ class StepTransformer(StreamingModule[StepTransformerState]):
         self.register_buffer("freqs", transformer.rope.freqs.detach().clone().float(), persistent=False)
 
     def _init_streaming_state(self, batch_size: int) -> StepTransformerState:
-        return StepTransformerState(batch_size, [_Ring(batch_size, self.num_heads, self.context, self.head_dim)
+        return StepTransformerState(batch_size, [RingKVCache(batch_size, self.num_heads, self.head_dim, self.context)
                                                  for _ in self.layers])
 
     def _rotation(self, positions: torch.Tensor) -> torch.Tensor:
@@ -125,10 +113,7 @@ class StepTransformer(StreamingModule[StepTransformerState]):
         else:
             if steps != 1:
                 raise ValueError(f"streaming decode takes one step per call, got {steps}")
-            position = state.next_position
-            state.next_position += 1
-            slot, filled = position % self.context, min(position + 1, self.context)
-            rotation = self._rotation(torch.tensor([position]))
+            rotation = self._rotation(torch.tensor([state.rings[0].next_position]))
             for layer, ring in zip(self.layers, state.rings):
-                x = layer(x, (batch, 1), rotation, partial(ring.attend, slot, filled))
+                x = layer(x, (batch, 1), rotation, partial(_ring_attention, ring))
         return x.view(batch, steps, dim).transpose(1, 2)

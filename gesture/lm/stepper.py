@@ -11,8 +11,8 @@ of the guided hidden state, one row instead of two and no guidance ops on the lo
 Weights of the matrix products are stored in `dtype` (a `gesture.nn.weights` form: float32, bfloat16, or per-row
 int8 with bfloat16 activations, each with the fastest kernel this CPU runs). The residual streams, norms, softmax and the temporal caches stay
 float32; the depth keys/values are stored in the products' output dtype (they are its outputs, unrounded).
-Every buffer is allocated once: the rings hold exactly the attention windows (self 25, cross 50 steps), so a
-query sees every filled slot and a mask is needed only until a ring is full. Nothing grows with the session.
+Every buffer is allocated once: the rings (`gesture.nn.RingKVCache.push`) hold exactly the attention windows (self
+25, cross 50 steps), so a query sees every filled slot and needs no mask. Nothing grows with the session.
 """
 
 from __future__ import annotations
@@ -27,7 +27,8 @@ from gesture.lm.layers import LAYER_NORM_EPS
 from gesture.lm.model import GestureLM
 from gesture.lm.step_weights import depth_fold, depth_weights, memory_kv, norm_params, temporal_weights
 from gesture.nn.rope import rope_tables, rotate_with_tables
-from gesture.nn.streaming import StreamingState
+from gesture.nn.kv_cache import RingKVCache
+from gesture.nn.streaming import StreamingModule, StreamingState
 from gesture.nn.weights import StepWeight, check_form, gated_ffn, step_weight
 
 F32 = torch.float32
@@ -42,12 +43,8 @@ def _norm(x: torch.Tensor, params: tuple[torch.Tensor, torch.Tensor]) -> torch.T
 class LMStepState(StreamingState):
     """Per-session state: the temporal rings and the depth scratch of the current step."""
 
-    self_keys: torch.Tensor  # (L, B, H, self_context, Dh), RoPE'd
-    self_values: torch.Tensor
-    cross_keys: torch.Tensor  # (L, 2, H, cross_context, Dh): audio, text memories of row 0, RoPE'd
-    cross_values: torch.Tensor
-    self_filled: torch.Tensor  # (self_context,) bool
-    cross_filled: torch.Tensor  # (cross_context,) bool
+    self_rings: list[RingKVCache]  # per temporal layer, (B, H, self_context, Dh), keys RoPE'd
+    cross_rings: list[RingKVCache]  # per temporal layer, (2, H, cross_context, Dh): audio, text memories of row 0
     temporal_ca: torch.Tensor  # (L, B, d): row 0 written per step, row 1 the null constant
     depth_kv: torch.Tensor  # (L_depth, B, S, 2d) keys | values, in the products' dtype
     depth_z: torch.Tensor  # (B, S, d) depth inputs without the token embedding
@@ -55,27 +52,29 @@ class LMStepState(StreamingState):
     step: int = 0
 
     def reset(self) -> None:
-        self.self_filled.fill_(False)
-        self.cross_filled.fill_(False)
+        for ring in self.self_rings + self.cross_rings:
+            ring.reset()
         self.step = 0
 
 
-class LMStepper:
-    """Cached step path of a `GestureLM`; see the module docstring."""
+class LMStepper(StreamingModule[LMStepState]):
+    """Cached step path of a `GestureLM`; see the module docstring. Like every streaming module it runs between
+    `start_streaming(batch)` (or `with stepper.streaming(batch):`) and `stop_streaming()`, and
+    `reset_streaming()` starts a new session; its batch is `stepper.batch` (2 rows when guided, else 1)."""
 
     def __init__(self, model: GestureLM, guided: bool, dtype: str = "float32") -> None:
+        super().__init__()
         self.sizes, self.spec = model.sizes, model.spec
         self.batch = 2 if guided else 1
         self.dtype = check_form(dtype)
         self.has_va = model.sizes.va_head
         self.needs_face_logits = self.has_va and model.sizes.va_use_face_logits
-        self._va_model = model if self.has_va else None
+        self.vad_predictor = model.vad_predictor if self.has_va else None  # small heads: submodules, not copies
+        self.vad_face_proj = model.vad_face_proj if self.needs_face_logits else None
         with torch.no_grad():
             self._prepare_tables(model)
             self._prepare_temporal(model)
             self._prepare_depth(model)
-        self.state = self._new_state()
-        self._make_views()
         self.set_speaker(0)
 
     # ----- preparation ----------------------------------------------------------------------------------------
@@ -122,9 +121,12 @@ class LMStepper:
         self.depth_mix_bias = torch.stack(biases)[:, None]  # (L, 1, d)
         self.classifiers = [self._cast(c.weight) for c in model.depformer_classifier]
 
-    def _new_state(self) -> LMStepState:
+    def _init_streaming_state(self, batch_size: int) -> LMStepState:
+        if batch_size != self.batch:
+            raise ValueError(f"this step path runs {self.batch} rows ({'guided' if self.batch == 2 else 'unguided'}), "
+                             f"not {batch_size}")
         s, b, d = self.sizes, self.batch, self.sizes.d_model
-        heads_t, heads_d = s.temporal_heads, s.depth_heads
+        heads, head_dim = s.temporal_heads, d // s.temporal_heads
         depth_dtype = self.depth[0].qkv[0].out_dtype if self.depth else F32
         temporal_ca = torch.zeros(s.temporal_layers, b, d)
         depth_ca = torch.zeros(s.depth_layers, s.n_depth, b, d)
@@ -132,21 +134,19 @@ class LMStepper:
             temporal_ca[i, 1:] = w.null_ca
         for i, w in enumerate(self.depth):
             depth_ca[i] = w.const_ca[:, None]
-        return LMStepState(
+        state = LMStepState(
             batch_size=b,
-            self_keys=torch.zeros(s.temporal_layers, b, heads_t, s.self_context_steps, d // heads_t),
-            self_values=torch.zeros(s.temporal_layers, b, heads_t, s.self_context_steps, d // heads_t),
-            cross_keys=torch.zeros(s.temporal_layers, 2, heads_t, s.cross_context_steps, d // heads_t),
-            cross_values=torch.zeros(s.temporal_layers, 2, heads_t, s.cross_context_steps, d // heads_t),
-            self_filled=torch.zeros(s.self_context_steps, dtype=torch.bool),
-            cross_filled=torch.zeros(s.cross_context_steps, dtype=torch.bool),
+            self_rings=[RingKVCache(b, heads, head_dim, s.self_context_steps) for _ in range(s.temporal_layers)],
+            cross_rings=[RingKVCache(2, heads, head_dim, s.cross_context_steps) for _ in range(s.temporal_layers)],
             temporal_ca=temporal_ca,
             depth_kv=torch.zeros(s.depth_layers, b, s.n_depth, 2 * d, dtype=depth_dtype),
             depth_z=torch.zeros(b, s.n_depth, d), depth_ca=depth_ca)
+        self._make_views(state)
+        return state
 
-    def _make_views(self) -> None:
+    def _make_views(self, st: LMStepState) -> None:
         """Views into the state used every step, made once (the state is only ever written in place)."""
-        st, s, d = self.state, self.sizes, self.sizes.d_model
+        s, d = self.sizes, self.sizes.d_model
         heads = s.depth_heads
 
         def prefix(i: int, k: int, half: slice) -> torch.Tensor:  # (B, H, k+1, Dh)
@@ -166,8 +166,11 @@ class LMStepper:
         self.spk_temp = self.spk_temp_table[speaker]  # (d,)
         self.spk_depth = self.spk_depth_table[speaker]  # (S, d)
 
-    def reset(self) -> None:
-        self.state.reset()
+    @property
+    def state(self) -> LMStepState:
+        if self._streaming_state is None:
+            raise RuntimeError("LMStepper is not streaming; call start_streaming(stepper.batch) first")
+        return self._streaming_state
 
     # ----- one step -------------------------------------------------------------------------------------------
     def condition_memories(self, text: int, audio: torch.Tensor) -> torch.Tensor:
@@ -198,38 +201,33 @@ class LMStepper:
         s, st, t = self.sizes, self.state, self.state.step
         heads, d = s.temporal_heads, s.d_model
         rope = rope_tables(torch.tensor(t), self.temporal_freqs)  # (Dh,) cos, sin at position t
-        self_slot, cross_slot = t % s.self_context_steps, t % s.cross_context_steps
-        self._append_memories(memories, rope, cross_slot)
-        st.self_filled[self_slot] = True
-        self_mask = None if bool(st.self_filled.all()) else st.self_filled[None]  # (1, C)
-        cross_mask = None if bool(st.cross_filled.all()) else st.cross_filled[None]
-        self_keys, self_values = st.self_keys[:, :, :, self_slot], st.self_values[:, :, :, self_slot]  # (L, B, H, Dh)
+        memory_kv = self._append_memories(memories, rope)
         for i, w in enumerate(self.temporal):
             qkv = w.qkv.apply(_norm(x, w.norm1)).float().view(self.batch, 3, heads, 1, -1)  # (B, 3, H, 1, Dh)
             qk = rotate_with_tables(qkv[:, :2], *rope)  # (B, 2, H, 1, Dh)
-            self_keys[i].copy_(qk[:, 1, :, 0])
-            self_values[i].copy_(qkv[:, 2, :, 0])
-            attended = attend(qk[:, 0], st.self_keys[i], st.self_values[i], attn_mask=self_mask)  # (B, H, 1, Dh)
+            keys, values = st.self_rings[i].push(qk[:, 1, :, 0], qkv[:, 2, :, 0])  # (B, H, n, Dh)
+            attended = attend(qk[:, 0], keys, values)  # (B, H, 1, Dh)
             x = x + w.out.apply(attended.reshape(self.batch, d))
             audio_query = _norm(x[:1], w.norm3[0])
             queries = w.cross_q.apply(torch.cat([audio_query, _norm(audio_query, w.norm3[1])])).float()  # (2, 2d)
             q = rotate_with_tables(torch.stack([queries[0, :d], queries[1, d:]]).view(2, heads, 1, -1), *rope)
-            crossed = attend(q, st.cross_keys[i], st.cross_values[i], attn_mask=cross_mask)  # (2, H, 1, Dh)
+            crossed = attend(q, *memory_kv[i])  # (2, H, 1, Dh)
             mixed = F.silu(w.mix.apply(crossed.reshape(1, 2 * d)) + w.mix_bias)  # (1, d) float32
             st.temporal_ca[i, :1].copy_(gated_ffn(mixed, w.ca_in, w.ca_out))
             x = x + st.temporal_ca[i]
             x = x + gated_ffn(_norm(x, w.norm2), w.ffn_in, w.ffn_out)
         return x
 
-    def _append_memories(self, memories: torch.Tensor, rope: tuple, slot: int) -> None:
-        """Keys and values of the audio and text memories for every layer, into ring slot `slot`."""
+    def _append_memories(self, memories: torch.Tensor, rope: tuple) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Keys and values of this step's audio and text memories into every layer's ring; returns each layer's
+        filled keys and values, (2, H, n, Dh) each."""
         s, st = self.sizes, self.state
         rows = s.temporal_layers * 2 * s.d_model
         kv = self.memory_kv.apply(memories).float()  # (2, 2 * rows): each memory times both weight halves
         kv = torch.stack([kv[0, :rows], kv[1, rows:]]).view(2, s.temporal_layers, 2, s.temporal_heads, -1)
-        st.cross_keys[:, :, :, slot] = rotate_with_tables(kv[:, :, 0], *rope).transpose(0, 1)  # (L, 2, H, Dh)
-        st.cross_values[:, :, :, slot] = kv[:, :, 1].transpose(0, 1)
-        st.cross_filled[slot] = True
+        keys = rotate_with_tables(kv[:, :, 0], *rope).transpose(0, 1)  # (L, 2, H, Dh)
+        values = kv[:, :, 1].transpose(0, 1)
+        return [ring.push(k, v) for ring, k, v in zip(st.cross_rings, keys, values)]
 
     def _depth_cross(self, memories: torch.Tensor) -> None:
         """Row-0 cross-attention block outputs of every depth layer and open position (the rest are constants)."""
@@ -265,8 +263,7 @@ class LMStepper:
 
     def va_logit(self, face_logits: torch.Tensor | None = None) -> float:
         """Voice-activity logit of row 0 for the current step; face_logits (n_face, card+1) if the head uses them."""
-        model = self._va_model
         features = self.temporal_out[:1]
-        if model.sizes.va_use_face_logits:
-            features = torch.cat([features, model.vad_face_proj(face_logits.reshape(1, -1))], dim=-1)
-        return float(model.vad_predictor(features)[0, 0])
+        if self.needs_face_logits:
+            features = torch.cat([features, self.vad_face_proj(face_logits.reshape(1, -1))], dim=-1)
+        return float(self.vad_predictor(features)[0, 0])

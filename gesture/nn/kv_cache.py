@@ -1,4 +1,6 @@
-"""A preallocated ring buffer of keys and values that remembers each slot's absolute position."""
+"""The one key/value ring of every attention that streams: the training model's streaming attention
+(`gesture.nn.attention`) and the step paths of the codec (`gesture.codec.step_transformer`) and the LM
+(`gesture.lm.stepper`)."""
 
 from __future__ import annotations
 
@@ -8,12 +10,15 @@ EMPTY_POSITION = -1
 
 
 class RingKVCache:
-    """Fixed-capacity key/value ring, (B, H, capacity, D); never grows.
+    """Fixed-capacity key/value ring, (B, H, capacity, D) each; never grows. Position p lives in slot p % capacity.
 
-    `append(k, v)` writes T new entries at absolute positions `next_position, ...` (or from
-    `start_position`, e.g. for a memory ring with its own clock) and returns the whole buffer with
-    `positions` (capacity,) int64, where an empty slot holds -1. Slot order is not time order:
-    attention must mask by the returned positions (see `gesture.nn.attention.attention_mask`).
+    - `append(k, v)` writes T new entries at absolute positions `next_position, ...` (or from `start_position`,
+      e.g. for a memory ring with its own clock) and returns the whole buffer with `positions` (capacity,) int64,
+      where an empty slot holds -1. Slot order is not time order: attention must mask by the returned positions
+      (see `gesture.nn.attention.attention_mask`).
+    - `push(k, v)` writes one step at `next_position` and returns the filled slots. Pushed slots fill in order, so
+      the filled ones are the first min(steps, capacity): a query that may see the whole window attends to them
+      without a mask (softmax attention does not depend on the order of its keys). Its views are made once.
     """
 
     def __init__(self, batch_size: int, num_heads: int, head_dim: int, capacity: int,
@@ -25,10 +30,23 @@ class RingKVCache:
         self.values = torch.zeros_like(self.keys)
         self.positions = torch.full((capacity,), EMPTY_POSITION, dtype=torch.long, device=device)
         self.next_position = 0
+        self._slots = [(self.keys[:, :, s], self.values[:, :, s]) for s in range(capacity)]  # (B, H, D)
+        self._filled = [(self.keys[:, :, :n], self.values[:, :, :n]) for n in range(1, capacity + 1)]  # (B, H, n, D)
 
     def reset(self) -> None:
         self.positions.fill_(EMPTY_POSITION)
         self.next_position = 0
+
+    def push(self, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Write one step's k, v (B, H, D); return the keys and values of the filled slots, (B, H, n, D) each."""
+        position = self.next_position
+        slot = position % self.capacity
+        keys, values = self._slots[slot]
+        keys.copy_(k)
+        values.copy_(v)
+        self.positions[slot] = position
+        self.next_position = position + 1
+        return self._filled[min(position, self.capacity - 1)]
 
     def append(self, k: torch.Tensor, v: torch.Tensor, start_position: int | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -66,11 +66,12 @@ def lm_logits(stepper: LMStepper, tokens: np.ndarray, text: np.ndarray, audio: n
     stepper.set_speaker(SPEAKER)
     history = torch.full((tokens.shape[1],), -1)
     out = []
-    for t in range(len(tokens)):
-        row = [stepper.begin_step(history, int(text[t]), torch.as_tensor(audio[:, t]), CFG_SCALE)]
-        row += [stepper.depth_logits(k, int(tokens[t, k]), CFG_SCALE) for k in range(tokens.shape[1] - 1)]
-        out.append(torch.stack(row))
-        history = torch.as_tensor(tokens[t])
+    with stepper.streaming(stepper.batch):
+        for t in range(len(tokens)):
+            row = [stepper.begin_step(history, int(text[t]), torch.as_tensor(audio[:, t]), CFG_SCALE)]
+            row += [stepper.depth_logits(k, int(tokens[t, k]), CFG_SCALE) for k in range(tokens.shape[1] - 1)]
+            out.append(torch.stack(row))  # (K, V)
+            history = torch.as_tensor(tokens[t])
     return torch.stack(out).numpy()
 
 
