@@ -9,14 +9,15 @@ import os
 import shutil
 import signal
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
 from agent.sections import AppConfig
 from agent.stage import StageRunner, Topology
-from core.threads import limit_threads
+from core.bus import bus_addresses
 from core.component import RunContext
+from core.threads import limit_threads
 
 COMPONENT_FACTORIES = {
     "io": "agent.io.process:create_component",
@@ -61,7 +62,8 @@ def stage_main(launch: StageLaunch) -> None:
     log = logging.getLogger(launch.stage)
     try:
         section = getattr(launch.app, launch.stage)
-        component, source = _split(load_factory(launch.factory)(section, launch.run))
+        run = replace(launch.run, addresses=bus_addresses(launch.app.bus, launch.ipc_dir))
+        component, source = _split(load_factory(launch.factory)(section, run))
         limit_threads()
         topology = Topology.of(launch.stage, launch.pipeline, speaker=launch.app.io.speaker)
         runner = StageRunner(topology, launch.app, launch.run, launch.ipc_dir, component, source)

@@ -84,6 +84,11 @@ def stage_address(stage: str, bus: BusConfig, ipc_dir: Path) -> str:
     return f"ipc://{path}"
 
 
+def bus_addresses(bus: BusConfig, ipc_dir: Path) -> dict[str, str]:
+    """The address of every process that publishes: each stage, the supervisor and the dashboard."""
+    return {name: stage_address(name, bus, ipc_dir) for name in (*STAGES, "supervisor", "dashboard")}
+
+
 class Publisher:
     """Binds one PUB socket and numbers each topic's messages (`seq`), so receivers can count losses."""
 

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Protocol, Sequence
 
@@ -27,6 +27,7 @@ class RunContext:
     live: bool
     seed: int
     session: str
+    addresses: dict[str, str] = field(default_factory=dict)  # process -> its bus address (`core.bus.bus_addresses`)
 
 
 class Component(Protocol):

@@ -27,6 +27,7 @@ N_SPEECH_CODES = 8
 
 class Kind(str, enum.Enum):
     AUDIO_USER = "audio.user"
+    MIC_AUDIO = "mic.audio"
     DIALOGUE_STEP = "dialogue.step"
     GESTURE_STEP = "gesture.step"
     RENDER_FRAME = "render.frame"
@@ -94,6 +95,15 @@ class AudioUser(Message):
 
 
 @dataclass
+class MicAudio(Message):
+    """A chunk of the browser page's microphone as the page sent it (24 kHz mono, any length), published by the
+    dashboard for the io stage (`launch.py --browser-mic`)."""
+
+    KIND: ClassVar[Kind] = Kind.MIC_AUDIO
+    pcm: np.ndarray = array_field("int16", None)  # (n,)
+
+
+@dataclass
 class DialogueStep(Message):
     KIND: ClassVar[Kind] = Kind.DIALOGUE_STEP
     agent_pcm: np.ndarray = array_field("float32", (STEP_SAMPLES,))
@@ -151,7 +161,7 @@ class Control(Message):
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.KIND.value: cls for cls in (AudioUser, DialogueStep, GestureStep, RenderFrame, Metrics, Log, Control)
+    cls.KIND.value: cls for cls in (AudioUser, MicAudio, DialogueStep, GestureStep, RenderFrame, Metrics, Log, Control)
 }
 
 

@@ -17,18 +17,20 @@ import aiohttp
 import numpy as np
 import pytest
 import soundfile as sf
+import zmq
 from PIL import Image
 
-from core.config import ConfigError, build_dataclass
 from agent.dashboard.browser import HeadlessChromium, find_chromium
 from agent.dashboard.config import DashboardConfig
 from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER, BINARY_MIC, LatencyMeter, RunState,
                                     Transcript, frame_jpeg, level_dbfs, pack_binary, turn_state)
-from agent.dashboard.mic import MAX_BUFFER_STEPS, PRIME_STEPS, BrowserMicSource, MicRelay
+from agent.dashboard.mic import MAX_BUFFER_STEPS, PRIME_STEPS, BrowserMicSource
 from agent.dashboard.process import page_url
 from agent.dashboard.server import Hub, make_app, start_server
-from core.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
 from agent.sections import load_app_config
+from core.bus import Publisher
+from core.config import ConfigError, build_dataclass
+from core.messages import Command, Control, DialogueStep, Metrics, MicAudio, RenderFrame, VadState
 from core.timing import STEP_SAMPLES
 from tests.test_runtime import finish, launch, leftovers
 
@@ -299,8 +301,15 @@ def test_https_with_a_certificate(tmp_path):
         build_dataclass(DashboardConfig, {"tls_cert": str(cert)}, "dashboard")
 
 
+def _mic_source(tmp_path) -> tuple[Publisher, BrowserMicSource]:
+    """A dashboard-side publisher on a private ipc path and the io source subscribed to it."""
+    address = f"ipc://{tmp_path}/dashboard.sock"
+    return Publisher(zmq.Context.instance(), address, "dashboard", lossless=True), BrowserMicSource(address)
+
+
 def test_browser_mic_source_primes_plays_out_and_bounds_its_buffer(tmp_path):
-    source = BrowserMicSource(tmp_path)
+    publisher, source = _mic_source(tmp_path)
+    publisher.close()
     ramp = np.arange(STEP_SAMPLES * 3, dtype=np.float32) / 1e5
     source.add(ramp[:STEP_SAMPLES])
     assert not source.take_step().any()  # one step buffered: not primed yet, silence
@@ -310,26 +319,33 @@ def test_browser_mic_source_primes_plays_out_and_bounds_its_buffer(tmp_path):
     assert not source.take_step().any() and source.underruns == 1  # ran dry: silence, and primes again
     source.add(np.ones(STEP_SAMPLES * (MAX_BUFFER_STEPS + PRIME_STEPS), np.float32))
     assert source.dropped_samples == STEP_SAMPLES * PRIME_STEPS and source.buffered == MAX_BUFFER_STEPS * STEP_SAMPLES
+    source.close()
 
 
-def test_browser_mic_source_delivers_relayed_audio_in_real_time_steps(tmp_path):
-    relay = MicRelay(tmp_path)
-    source = BrowserMicSource(tmp_path)
+def test_browser_mic_source_delivers_bus_audio_in_real_time_steps_and_counts_losses(tmp_path):
+    publisher, source = _mic_source(tmp_path)
+    chunk = (np.full(STEP_SAMPLES, 0.25) * 32767).astype("<i2")
     try:
         blocks = []
         while len(blocks) < 8:
             block = source.next_block(timeout_s=0.005)
             if block is not None:
                 blocks.append(block)
-                relay.send((np.full(STEP_SAMPLES, 0.25) * 32767).astype("<i2").tobytes())
+                publisher.send(MicAudio(pcm=chunk))
         pcm = np.stack([b[0] for b in blocks])  # (8, STEP_SAMPLES)
         due = np.diff([b[1] for b in blocks])
         assert np.all(due == 80_000_000)  # one step per 80 ms of capture time
         assert not pcm[0].any() and np.allclose(pcm[-1], 0.25, atol=1e-4)
         assert source.counters()["mic_received_samples"] >= STEP_SAMPLES * 4
+        assert source.counters()["mic_lost_chunks"] == 0
+        publisher._seq[MicAudio.KIND.value] += 3  # three chunks that never arrive
+        publisher.send(MicAudio(pcm=chunk))
+        while source.counters()["mic_lost_chunks"] == 0:
+            source.next_block(timeout_s=0.005)
+        assert source.counters()["mic_lost_chunks"] == 3
     finally:
         source.close()
-        relay.close()
+        publisher.close()
 
 
 def test_level_in_dbfs():
@@ -555,3 +571,35 @@ def test_the_real_dialogue_answers_the_pages_microphone(tmp_path):
     assert code == 0, output
     heard = {"john", "dashwood", "leisure", "consider", "power"} & set(transcript.lower().split())
     assert len(heard) >= 2 and "agent" in transcript  # pocketsphinx misses about a third of the words
+
+
+def test_the_pages_microphone_reaches_the_io_stage_over_the_bus(tmp_path):
+    """The real processes (launch.py --browser-mic: supervisor, dashboard, io and the test stages, on a private ipc
+    directory): a client plays the page, claims the microphone and sends int16 chunks over the WebSocket; the io
+    stage's counters, as the dashboard reports them, show the audio arrived and no chunk was lost on the way."""
+    report = tmp_path / "run"
+    proc = launch(["--browser-mic"], report)
+    chunk = BINARY_HEADER.pack(BINARY_MIC, 0, 0) + (np.full(STEP_SAMPLES, 0.25) * 32767).astype("<i2").tobytes()
+    wanted = 12 * STEP_SAMPLES
+
+    async def page(url: str) -> dict:
+        async with aiohttp.ClientSession() as http, http.ws_connect(url.split("?")[0].rstrip("/") + "/ws") as ws:
+            await ws.send_str(json.dumps({"type": "mic", "enabled": True}))
+            io = {}
+            deadline = time.monotonic() + 120  # a guard against a hang: the test waits for the event, not the time
+            while io.get("mic_received_samples", 0) < wanted:
+                assert time.monotonic() < deadline, f"the io stage never reported the page's audio: {io}"
+                await ws.send_bytes(chunk)  # like a microphone, it sends on until the stage has heard enough
+                msg = await ws.receive(timeout=30)
+                event = json.loads(msg.data) if msg.type == aiohttp.WSMsgType.TEXT else {}
+                if event.get("type") == "mic":
+                    assert event["granted"], event
+                if event.get("type") == "counters":
+                    io = event["stages"].get("io", {})
+            await ws.send_str(json.dumps({"type": "control", "command": "stop"}))
+            return io
+
+    io, code, output = _drive_page(proc, report, page, finish_timeout_s=60)
+    assert code == 0, output
+    assert io["mic_received_samples"] >= wanted and io["mic_lost_chunks"] == 0 and io["mic_bad_chunks"] == 0
+    assert leftovers(proc.pid) == []

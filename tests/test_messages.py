@@ -2,7 +2,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from core.messages import (AudioUser, Command, Control, DecodeError, DialogueStep, GestureStep, Log, Metrics,
+from core.messages import (AudioUser, Command, Control, DecodeError, DialogueStep, GestureStep, Log, Metrics, MicAudio,
                             MsgpackSerializer, RenderFrame, VadState)
 
 SER = MsgpackSerializer()
@@ -22,6 +22,7 @@ def dialogue_step():
 
 @pytest.mark.parametrize("msg", [
     AudioUser(step=1, pcm=np.ones(1920, np.float32)),
+    MicAudio(pcm=np.arange(-700, 700, 3, dtype="<i2")),  # any length, as the page sent it
     dialogue_step(),
     GestureStep(poses=np.random.rand(2, 55, 3).astype(np.float32), trans=np.zeros((2, 3), np.float32),
                 expressions=np.ones((2, 100), np.float32), tokens=np.arange(20, dtype=np.int32), va_prob=0.25),

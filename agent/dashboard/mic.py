@@ -1,48 +1,29 @@
 """The browser's microphone as the user's audio (`launch.py --browser-mic`).
 
 The page captures the microphone (getUserMedia, with the browser's own echo cancellation), resamples it to
-24 kHz and sends int16 chunks over its WebSocket; the dashboard process relays them on a local ZeroMQ PUB
-(`MicRelay`, address written to `<run dir>/browser_mic.addr`); the io stage's `BrowserMicSource` turns them
-into one 1920-sample block per step, in real time, with a small jitter buffer. While no page sends audio,
-the source delivers silence on time, so the loop runs (and the avatar idles) before anyone speaks.
+24 kHz and sends int16 chunks over its WebSocket; the dashboard process publishes each as a `MicAudio` message
+on the bus (`core.messages`); the io stage's `BrowserMicSource` subscribes to it, counts the chunks lost on the
+way (gaps in their sequence numbers) and turns them into one 1920-sample block per step, in real time, with a
+small jitter buffer. While no page sends audio, the source delivers silence on time, so the loop runs (and the
+avatar idles) before anyone speaks.
 """
 
 from __future__ import annotations
 
 import collections
 import time
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import zmq
 
+from core.bus import Subscriber
 from core.component import RunContext
+from core.messages import MicAudio
 from core.timing import STEP_NS, STEP_SAMPLES
 
-ADDRESS_FILE = "browser_mic.addr"
-TOPIC = b"mic"
 PRIME_STEPS = 2  # buffered steps before browser audio plays out (absorbs the page's chunking and jitter)
 MAX_BUFFER_STEPS = 8  # beyond this the oldest audio is dropped and counted (the page ran ahead)
-
-
-class MicRelay:
-    """Dashboard side: publishes the page's int16 PCM chunks on 127.0.0.1 and tells the io stage where."""
-
-    def __init__(self, run_dir: Path):
-        self.socket = zmq.Context.instance().socket(zmq.PUB)
-        self.socket.setsockopt(zmq.LINGER, 0)
-        port = self.socket.bind_to_random_port("tcp://127.0.0.1")
-        self.address = f"tcp://127.0.0.1:{port}"
-        (run_dir / ADDRESS_FILE).write_text(self.address + "\n")
-        self.chunks = 0
-
-    def send(self, pcm_int16: bytes) -> None:
-        self.socket.send_multipart([TOPIC, pcm_int16])
-        self.chunks += 1
-
-    def close(self) -> None:
-        self.socket.close()
 
 
 class BrowserMicSource:
@@ -50,9 +31,8 @@ class BrowserMicSource:
 
     paced = True
 
-    def __init__(self, run_dir: Path):
-        self.address_file = run_dir / ADDRESS_FILE
-        self.socket: Optional[zmq.Socket] = None
+    def __init__(self, dashboard_address: str):
+        self.sub = Subscriber(zmq.Context.instance(), [dashboard_address], [MicAudio.KIND.value], live_queue=None)
         self.buffer: collections.deque[np.ndarray] = collections.deque()  # float32 chunks, oldest first
         self.buffered = 0  # samples in `buffer`
         self.primed = False
@@ -76,26 +56,10 @@ class BrowserMicSource:
         return self.take_step(), due
 
     def _receive(self, timeout_s: float) -> None:
-        if self.socket is None and not self._connect():
-            time.sleep(min(timeout_s, 0.005))
-            return
-        if self.socket.poll(int(timeout_s * 1000)):
-            while True:
-                try:
-                    _, payload = self.socket.recv_multipart(zmq.NOBLOCK)
-                except zmq.Again:
-                    break
-                self.add(np.frombuffer(payload, "<i2").astype(np.float32) / 32768.0)
-
-    def _connect(self) -> bool:
-        text = self.address_file.read_text().strip() if self.address_file.exists() else ""
-        if not text:
-            return False
-        self.socket = zmq.Context.instance().socket(zmq.SUB)
-        self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.setsockopt(zmq.SUBSCRIBE, TOPIC)
-        self.socket.connect(text)
-        return True
+        if self.sub.socket.poll(int(timeout_s * 1000)):
+            self.sub.poll_into_queue()
+        while self.sub.queue:
+            self.add(self.sub.queue.popleft().pcm.astype(np.float32) / 32768.0)
 
     def add(self, pcm: np.ndarray) -> None:
         """Queue browser audio (float32 at 24 kHz); beyond MAX_BUFFER_STEPS the oldest is dropped."""
@@ -139,11 +103,11 @@ class BrowserMicSource:
 
     def counters(self) -> dict[str, int]:
         return {"mic_received_samples": self.received_samples, "mic_dropped_samples": self.dropped_samples,
-                "mic_underruns": self.underruns}
+                "mic_underruns": self.underruns, "mic_lost_chunks": self.sub.lost,
+                "mic_bad_chunks": self.sub.decode_errors}
 
     def close(self) -> None:
-        if self.socket is not None:
-            self.socket.close()
+        self.sub.close()
 
 
 class BrowserMicIo:
@@ -167,5 +131,5 @@ class BrowserMicIo:
 
 def browser_io(cfg, run: RunContext) -> tuple[BrowserMicIo, BrowserMicSource]:
     """The io stage's factory for `run.components.io` (launch.py --browser-mic sets it)."""
-    source = BrowserMicSource(run.run_dir)
+    source = BrowserMicSource(run.addresses["dashboard"])
     return BrowserMicIo(source), source

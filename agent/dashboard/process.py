@@ -17,17 +17,17 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import zmq
 
-from core.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
 from agent.dashboard.events import (BINARY_AUDIO, BINARY_FRAME, LatencyMeter, RunState, Transcript, frame_jpeg,
                                     hello_event, pack_binary, pcm_int16, vad_event)
-from agent.dashboard.mic import MicRelay
-from core.messages import Command, Control, DialogueStep, Message, Metrics, RenderFrame
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
+from core.bus import Publisher, Subscriber, stage_address
 from core.component import RunContext
+from core.messages import Command, Control, DialogueStep, Message, Metrics, MicAudio, RenderFrame
 
 log = logging.getLogger("dashboard")
 
@@ -69,20 +69,20 @@ class DashboardBridge:
         self.latency = LatencyMeter(self.pipeline, self.cfg.history_steps)
         self.run_state = RunState(self.pipeline, self.pipeline[-1], self.cfg.wait_for_start)
         self.clock = ClockSync()
-        self.mic = MicRelay(launch.run.run_dir) if self.cfg.browser_mic else None
+        self.mic_chunks = 0
         self.hub = None  # set by serve()
         self.stopping = False
         self.frames_in = 0
         self.bad_frames = 0
 
     def snapshot(self) -> list[dict]:
-        return [hello_event(self.pipeline, self.live, self.session, self.mic is not None), self.run_state.event(),
+        return [hello_event(self.pipeline, self.live, self.session, self.cfg.browser_mic), self.run_state.event(),
                 *self.transcript.snapshot(), *self.latency.snapshot(), self.counters_event()]
 
     def counters_event(self) -> dict:
         own = {"received_frames": self.frames_in, "dropped": self.sub.dropped, "lost": self.sub.lost,
                "decode_errors": self.sub.decode_errors, "bad_frames": self.bad_frames,
-               "mic_chunks": self.mic.chunks if self.mic else 0,
+               "mic_chunks": self.mic_chunks,
                **(self.hub.counters() if self.hub else {})}
         return self.run_state.counters_event(own)
 
@@ -139,15 +139,18 @@ class DashboardBridge:
     def close(self) -> None:
         self.pub.close()
         self.sub.close()
-        if self.mic is not None:
-            self.mic.close()
+
+    def send_mic(self, pcm_int16: bytes) -> None:
+        """A chunk of the page's microphone, to the io stage over the bus (numbered, so it counts what it lost)."""
+        self.pub.send(MicAudio(session=self.session, pcm=np.frombuffer(pcm_int16, "<i2")))
+        self.mic_chunks += 1
 
 
 async def serve(launch: DashboardLaunch) -> None:
     from agent.dashboard.server import Hub, make_app, start_server
 
     bridge = DashboardBridge(launch)
-    bridge.hub = Hub(bridge.snapshot, bridge.command, bridge.mic.send if bridge.mic else None)
+    bridge.hub = Hub(bridge.snapshot, bridge.command, bridge.send_mic if bridge.cfg.browser_mic else None)
     loop = asyncio.get_running_loop()
     loop.add_signal_handler(signal.SIGTERM, lambda: setattr(bridge, "stopping", True))
     cfg = launch.app.dashboard
