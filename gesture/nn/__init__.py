@@ -2,7 +2,8 @@
 
 - `StreamingModule` / `StreamingState`: typed per-module state, `streaming(batch_size)`, `reset_streaming()`.
 - `RotaryEmbedding`, `apply_rope`, `rope_frequencies`: RoPE on interleaved pairs at absolute positions (fp32).
-- `RingKVCache`: preallocated (B, H, capacity, D) ring with the absolute position of each slot.
+- `RingKVCache`: the one preallocated (B, H, capacity, D) key/value ring: `append` (chunks, masked by each slot's
+  absolute position) and `push` (one step, its filled slots need no mask; the codec and LM step paths).
 - `attention_mask`, `windowed_attention`: causal + window masking by positions; fully masked rows -> 0.
 - `StreamingMultiheadAttention`, `StreamingTransformer(Layer)`: packed-q/k/v pre-LN causal transformer.
 - `StreamingConv1d`, `StreamingConvTranspose1d`: causal weight-normed convs, streaming == offline.
