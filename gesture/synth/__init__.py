@@ -1,3 +1,3 @@
-"""Synthetic conversations in BEAT2's layout (`python -m gesture.data.synthetic`): scripted turns voiced by
-espeak-ng and a procedural agent whose posture, gestures, hands and face follow its speech, calibrated on a real
-clip (`calibration.json`)."""
+"""Synthetic dyadic conversations in BEAT2's layout (`python -m gesture.data.synthetic`, code in `build`): two
+espeak-ng voices take turns (`conversation`) while a procedural agent moves its whole body (`agent`), calibrated
+on a real clip (`calibration.json`)."""
