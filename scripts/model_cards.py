@@ -40,7 +40,7 @@ def data_line(mix: Path) -> str:
 
 
 TERMS = f"""## Terms
-- The synthetic sessions are made by this project's generator (`gesture/data/synth`, MIT like the rest of the code;
+- The synthetic sessions are made by this project's generator (`gesture/synth`, MIT like the rest of the code;
   its voices are espeak-ng's). The generator's calibration (`gesture/synth/calibration.json`: rest posture,
   hand shape, gesture space and the micro-motion fitted by `python -m gesture.eval.synth_fit`) is measured on the
   real BEAT2 clip `2_scott_0_1_1`.

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from agent.config import ConfigError
+from core.config import ConfigError
 from core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle
 from gesture.config import MicroMotionConfig
