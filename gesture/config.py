@@ -36,7 +36,7 @@ class MicroMotionConfig:
     enabled: bool = False
     joints: tuple[int, ...] = (3, 6, 9, 12, 13, 14, 15, 20, 21)  # spine, neck, collars, head, wrists
     scale: float = 1.0  # times every fitted standard deviation
-    blinks_per_minute: float = 17.0  # the synthetic agent's (gesture.data.synth.face.BLINKS_PER_MINUTE); 0: none
+    blinks_per_minute: float = 17.0  # the synthetic agent's (gesture.synth.face.BLINKS_PER_MINUTE); 0: none
 
     def __post_init__(self) -> None:
         if not self.joints:
