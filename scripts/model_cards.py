@@ -24,8 +24,14 @@ for r in ('upper', 'lower', 'face'):
         rows.append(f"| {r}{stage} | {last['step']} | {last['train'][key]:.2f} | {last['heldout'][key]:.2f} | "
                     f"{last['train']['feature_mse']:.5f} | {last['heldout']['feature_mse']:.5f} |")
         tuned += [r] if stage else []
-FACE_STEPS = json.loads((W / 'codec_face.json').read_text())['last']['step']
+STEPS = {r: json.loads((W / f'codec_{r}.json').read_text())['last']['step'] for r in ('upper', 'lower', 'face')}
 size = {r: (S / 'codecs' / r / 'model.safetensors').stat().st_size / 1e6 for r in ('upper', 'lower', 'face')}
+
+
+def run_notes(card: str) -> str:
+    """What the training run wrote down for this card ($WORK/notes_<card>.md), e.g. a stage that was resumed."""
+    notes = W / f'notes_{card}.md'
+    return "\n" + notes.read_text() if notes.is_file() else ""
 
 
 def data_line(mix: Path) -> str:
@@ -39,6 +45,12 @@ def data_line(mix: Path) -> str:
             "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split).")
 
 
+DECODER_STAGE = ("; stage `decoders`: `python -m gesture.train_codec --config configs/codec/default_small_finetune.yaml "
+                 f"--region <region> --data $WORK/cache --finetune-decoder $WORK/codecs/<region> --out "
+                 f"$WORK/decoders/<region>` for {' and '.join(tuned)}, in parallel" if tuned else "")
+CODEC_TIMES = (f"codec stage (three regions in parallel on 2 cores) {int(times['codecs'])} s ("
+               + ", ".join(f"{r} {int(times[f'codec_{r}'])} s" for r in ('upper', 'lower', 'face'))
+               + f"), decoder fine-tuning {int(times.get('decoders', 0))} s")
 TERMS = f"""## Terms
 - The synthetic sessions are made by this project's generator (`gesture/synth`, MIT like the rest of the code;
   its voices are espeak-ng's). The generator's calibration (`gesture/synth/calibration.json`: rest posture,
@@ -47,8 +59,18 @@ TERMS = f"""## Terms
 - The real clip `2_scott_0_1_1` (motion and speech) is BEAT2 data (Liu et al., EMAGE, CVPR 2024) under BEAT2's
   licence: research use with attribution. Because it is part of the training data, these weights carry BEAT2's
   terms too; the project's MIT licence covers the code only."""
-codec_data = data_line(W / 'codec_data') + " Cut into 10 s chunks by `python -m gesture.data.build`."
-lm_data = data_line(W / 'data')
+DECODER_TEXT = (f"""Then the decoder half is fine-tuned for {' and '.join(tuned)}, with the encoder and quantizer
+frozen (the codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr
+{DECODER['lr']:g}, batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`), with the
+reference's losses plus a log-joint-speed term (weight {DECODER['log_speed_weight']:g}, floor
+{DECODER['speed_floor_mps'] * 1000:g} mm/s, on the joints BeatAlign reads; `gesture.codec.losses`) that keeps holds
+and listening from wobbling.""" if tuned else "No decoder fine-tuning (`DECODER_REGIONS` is empty for this ship).")
+SYNTH_COMMIT = gen.get('commit')
+synth_note = (f" The sessions were generated at commit {SYNTH_COMMIT} of the generator; a later commit (73247b8)"
+              " scales an elbow's micro-motion down where it would hyperextend, so HEAD regenerates slightly different"
+              " elbows." if SYNTH_COMMIT else "")
+codec_data = data_line(W / 'codec_data') + synth_note + " Cut into 10 s chunks by `python -m gesture.data.build`."
+lm_data = data_line(W / 'data') + synth_note
 codec = f"""# The default gesture codecs (upper+hands, lower, face)
 
 Three causal RVQ-VAE codecs (gesture.codec, 2 frames per 80 ms step, 256 codes of dimension 32; n_q 8/8/4),
@@ -63,15 +85,13 @@ face {size['face']:.1f} MB.
 ## Config
 `configs/codec/default_small.yaml` (each region's `config.yaml` here is the full dump): latent 128, 64 SEANet
 filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch_size']} windows of up to
-{CODEC['window_frames']} frames, {CODEC['steps']} steps, StepLR ×0.8 every {CODEC['lr_step_every']} steps. The face
-codec trains for {FACE_STEPS} steps with an expression MSE (weight {CODEC['expression_mse_weight']:g}) beside the
-reference's L1: with L1 alone it reconstructed a face that never blinks.
-Then the decoder half is fine-tuned for {' and '.join(tuned) or 'no region'}, with the encoder and quantizer
-frozen (the codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr
-{DECODER['lr']:g}, batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`), with the
-reference's losses plus a log-joint-speed term (weight {DECODER['log_speed_weight']:g}, floor
-{DECODER['speed_floor_mps'] * 1000:g} mm/s, on the joints BeatAlign reads; `gesture.codec.losses`) that keeps holds
-and listening from wobbling.
+{CODEC['window_frames']} frames, StepLR ×0.8 every {CODEC['lr_step_every']} steps; upper {STEPS['upper']}, lower
+{STEPS['lower']}, face {STEPS['face']} steps. The face codec has an expression MSE (weight
+{CODEC['expression_mse_weight']:g}) beside the reference's L1: with L1 alone it reconstructed a face that never blinks.
+{DECODER_TEXT}
+These codecs do not carry the small, speech-independent motion of the spine, neck, head, collars and wrists (a
+linear probe of the upper latent explains none of it); the default agent adds it after decoding with its
+micro-motion layer (`gesture.micro_motion`, `configs/default.yaml`).
 
 ## Metrics
 Reconstruction (offline encode -> decode with all levels) at the last step; MPJPE in mm over the 55 FK joints with
@@ -89,15 +109,12 @@ quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<re
 
 ## Reproduce
 `bash scripts/train_default.sh` (stage `codecs`: `python -m gesture.train_codec --config
-configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>`,
-the three regions in parallel, `nice -n 5`, one thread each; stage `decoders`: `python -m gesture.train_codec
---config configs/codec/default_small_finetune.yaml --region <region> --data $WORK/cache --finetune-decoder
-$WORK/codecs/<region> --out $WORK/decoders/<region>` for {' and '.join(tuned)}, in parallel).
+configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>
+--steps <the region's steps>`, the three regions in parallel, `nice -n 5`, one thread each{DECODER_STAGE}).
 
-Wall time of the codec stage (three regions in parallel on 2 cores): {int(times['codecs'])} s; decoder
-fine-tuning {int(times.get('decoders', 0))} s; synthetic data {int(times.get('synthetic', 0))} s, chunk cache {int(times['chunk_cache'])} s.
+Wall time: {CODEC_TIMES}; synthetic data {int(times.get('synthetic', 0))} s, chunk cache {int(times['chunk_cache'])} s.
 """
-(S / 'codecs' / 'README.md').write_text(codec)
+(S / 'codecs' / 'README.md').write_text(codec + run_notes('codecs'))
 meta = json.loads((S / 'gesture_lm' / 'lm.json').read_text())
 losses = json.loads((S / 'gesture_lm' / 'losses.json').read_text())
 first, last = losses[0], losses[-1]
@@ -142,4 +159,4 @@ configs/lm/default_small.yaml --data $WORK/lm_data --codecs $WORK/codecs --out $
 
 Wall time on 2 cores: tokenize {int(times['tokenize'])} s, LM training {int(times['lm'])} s.
 """
-(S / 'gesture_lm' / 'README.md').write_text(lm)
+(S / 'gesture_lm' / 'README.md').write_text(lm + run_notes('gesture_lm'))

@@ -183,7 +183,7 @@ def test_tokenize_a_take_matches_the_codecs_own_encoding(tmp_path):
 
 @pytest.mark.slow
 def test_training_chain_end_to_end_tiny(tmp_path):
-    env = {**os.environ, "SESSIONS": "2", "MINUTES": "0.5", "CODEC_STEPS": "10", "FACE_CODEC_STEPS": "10",
+    env = {**os.environ, "SESSIONS": "2", "MINUTES": "0.5", "CODEC_STEPS": "10", "DECODER_REGIONS": "upper lower",
            "DECODER_STEPS": "4",
            "LM_EPOCHS": "1", "WORK": str(tmp_path / "work"), "SHIP": str(tmp_path / "ship"),
            "SYNTHETIC": str(tmp_path / "synthetic"), "PY": str(REPO / ".venv" / "bin" / "python")}
