@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from gesture.config import IdleGateConfig
 from gesture.synth.agent import MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_LISTENING, MICRO_PARTS
 from gesture.synth.calibration import load_calibration
 from gesture.synth.face import BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S
@@ -33,7 +34,7 @@ FILTER_POLES = 4
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
 WARMUP_TIME_CONSTANTS = 8  # reset runs the filters this many of their slowest time constants, so none starts at 0
 LIMIT_STDS = 2.5  # each offset is softly limited (tanh) to this many fitted stds per axis: no wrist folds over
-SPEAKING_RMS = 0.5 / np.sqrt(5760)  # the idle gate's default silence level (L2 0.5 over 5760 samples) as an RMS
+SPEAKING_RMS = IdleGateConfig.l2_threshold / np.sqrt(IdleGateConfig.window_samples)  # its silence as an RMS
 
 
 def is_speaking(agent_pcm: np.ndarray | None) -> bool:

@@ -8,17 +8,14 @@ import pytest
 import torch
 import yaml
 
-from core.body import UPPER_JOINTS
 from core.config import ConfigError
 from gesture.body.motion import integrate_velocity
 from gesture.body.regions import motion_to_features
 from gesture.body.rotation import axis_angle_to_matrix
-from gesture.body.rotation import axis_angle_to_rot6d
 from gesture.codec.checkpoint import load_codec
 from gesture.codec.config import CodecTrainConfig
 from gesture.codec.data import load_motion_splits
-from gesture.codec.losses import (RegionLoss, balance_weights, balanced_joint_weights, integrate_root, laplacian,
-                                  log_map, log_speed_error, rotation_variances, velocity)
+from gesture.codec.losses import RegionLoss, integrate_root, laplacian, log_map, log_speed_error, velocity
 from gesture.codec.train import commitment_ramp, main
 
 torch.set_num_threads(1)
@@ -108,49 +105,6 @@ def test_negative_loss_weights_are_config_errors():
     for name in ("log_speed_weight", "expression_mse_weight"):
         with pytest.raises(ConfigError, match=f"train.{name}: must be >= 0"):
             CodecTrainConfig(**{name: -1.0})
-
-
-def test_rotation_variance_of_a_known_swing():
-    angles = torch.linspace(-0.3, 0.3, 601)  # uniform about x: mean rotation identity, variance a^2 / 3
-    aa = torch.zeros(601, 2, 3)
-    aa[:, 0, 0] = angles
-    aa[:, 1, 2] = 0.5  # a constant rotation: no variance
-    variances = rotation_variances(axis_angle_to_rot6d(aa))
-    torch.testing.assert_close(variances, torch.tensor([0.3**2 / 3, 0.0]), atol=2e-4, rtol=0)
-
-
-def test_balance_weights_lift_still_joints_up_to_the_cap():
-    weights = balance_weights(torch.tensor([0.4, 0.1, 0.004, 0.0]), cap=50.0)
-    torch.testing.assert_close(weights, torch.tensor([1.0, 4.0, 50.0, 50.0]))
-
-
-def test_balanced_upper_weights_favour_the_head_over_the_elbows():
-    clips = load_motion_splits(CLIP, 10.0)[0] if CLIP.is_file() else pytest.skip("needs ../shared/data/beat2")
-    weights = balanced_joint_weights(clips[0].features["upper"], "upper", 50.0)
-    head, elbow = weights[UPPER_JOINTS.index(15)], weights[UPPER_JOINTS.index(18)]
-    assert weights.min() == 1.0 and weights.max() <= 50.0 and head > 2 * elbow
-
-
-def test_joint_weights_scale_one_joints_rotation_error():
-    rng = np.random.default_rng(0)
-    target = torch.from_numpy(motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), np.zeros((12, 3)),
-                                                 np.zeros((12, 100)))["upper"])[None]  # (1, 12, 258)
-    pred = target.clone()
-    head = UPPER_JOINTS.index(15)
-    pred[..., 6 * head:6 * head + 6] += 0.05  # only the head is wrong
-    plain = RegionLoss("upper")(pred, target)["rot6d"]
-    weights = torch.ones(len(UPPER_JOINTS))
-    weights[head] = 10.0
-    lifted = RegionLoss("upper", joint_weights=weights)(pred, target)["rot6d"]
-    mean = weights.mean()
-    torch.testing.assert_close(lifted, plain * 10.0 / mean)
-    with pytest.raises(ValueError, match=r"joint_weights must be \(43,\)"):
-        RegionLoss("upper", joint_weights=torch.ones(3))
-
-
-def test_balance_cap_below_one_is_a_config_error():
-    with pytest.raises(ConfigError, match="train.balance_cap: must be 0 \\(off\\) or >= 1"):
-        CodecTrainConfig(balance_cap=0.5)
 
 
 def test_commitment_ramp():

@@ -123,7 +123,6 @@ class CodecTrainConfig:
     log_speed_weight: float = 0.0  # not in the reference: see gesture.codec.losses
     speed_floor_mps: float = 0.005
     expression_mse_weight: float = 0.0  # not in the reference: see gesture.codec.losses
-    balance_cap: float = 0.0  # not in the reference: inverse-variance joint weights up to this cap (0: off)
 
     def __post_init__(self) -> None:
         _check_positive("train", lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
@@ -137,8 +136,6 @@ class CodecTrainConfig:
         for name, value in non_negative.items():
             if value < 0:
                 raise ConfigError(f"train.{name}: must be >= 0, got {value}")
-        if self.balance_cap and self.balance_cap < 1:
-            raise ConfigError(f"train.balance_cap: must be 0 (off) or >= 1, got {self.balance_cap}")
 
 
 @dataclass(frozen=True)

@@ -15,11 +15,6 @@ minimum, i.e. a motion beat; in log speed a slow segment weighs as much as a str
 Also optional (`expression_mse_weight` > 0, 10 for the default face codec): the MSE of the expressions. The L1
 term alone is minimised by the median, and blinks, brow raises and smiles are rare events whose median is rest:
 the small face codec trained on L1 alone reconstructed a face that never blinks (the README's quality section).
-Also optional (`balance_cap` > 0, used by the default codecs): inverse-variance weights. Each joint's rotation terms
-are weighted by (largest variance / its variance), capped
-at `balance_cap`, then normalised to mean 1 (`balance_weights`). Unweighted, the small codecs reproduced the
-large arm rotations and output a constant mean pose for the spine, neck, head, collars and wrists, whose
-variance is 10-800x smaller: a speaker's head and torso motion vanished in the codec.
 SMPL-X vertex terms need a licensed body model and are not computed here. Joint positions come
 from `gesture.body.skeleton.forward_kinematics` on the given skeleton (default: the built-in one), with
 every joint outside the region at rest and no translation (the lower body adds its integrated root).
@@ -38,7 +33,6 @@ from gesture.body.regions import (FACE_EXPRESSION_SLICE, FACE_JAW_SLICE, LOWER_C
                                   LOWER_VELOCITY_SLICE)
 from gesture.body.rotation import geodesic_angle, rot6d_to_matrix
 from gesture.body.skeleton import Skeleton, forward_kinematics
-from gesture.codec.evaluation import region_rot6d
 
 LAPLACIAN_KERNEL = (-1.0, 16.0, -30.0, 16.0, -1.0)
 CONTACT_ON = 0.98
@@ -112,35 +106,11 @@ def log_speed_error(pred_joints: torch.Tensor, gt_joints: torch.Tensor, floor_mp
     return _mse(log_speed(pred_joints), log_speed(gt_joints))
 
 
-def balance_weights(variances: torch.Tensor, cap: float) -> torch.Tensor:
-    """(N,) variances -> (N,) weights: largest variance / variance, clamped to [1, cap]."""
-    return (variances.max() / variances.clamp_min(1e-12)).clamp(1.0, cap)
-
-
-def rotation_variances(rot6d: torch.Tensor) -> torch.Tensor:
-    """(T, J, 6) -> (J,) mean squared geodesic angle (rad^2) to each joint's mean rotation (the rotation
-    nearest the mean matrix)."""
-    matrices = rot6d_to_matrix(rot6d)  # (T, J, 3, 3)
-    u, _, vh = torch.linalg.svd(matrices.mean(0))  # (J, 3, 3) each
-    flip = torch.ones_like(u[:, 0])  # (J, 3): makes the nearest orthogonal matrix a proper rotation
-    flip[:, 2] = torch.linalg.det(u @ vh)
-    mean = u @ torch.diag_embed(flip) @ vh
-    return geodesic_angle(matrices, mean.expand_as(matrices)).pow(2).mean(0)
-
-
-def balanced_joint_weights(features: torch.Tensor, region: str, cap: float) -> torch.Tensor:
-    """RegionLoss's `joint_weights` (J,) from (T, nfeats) training features."""
-    return balance_weights(rotation_variances(region_rot6d(features, region)), cap)
-
-
 class RegionLoss(nn.Module):
-    """`loss(pred, target) -> dict` of weighted terms and their sum under "total".
-
-    `joint_weights` (J,) scale each region joint's rotation terms, normalised to mean 1 (see `balance_weights`)."""
+    """`loss(pred, target) -> dict` of weighted terms and their sum under "total"."""
 
     def __init__(self, region: str, skeleton: Skeleton | None = None, log_speed_weight: float = 0.0,
-                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0,
-                 joint_weights: torch.Tensor | None = None) -> None:
+                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0) -> None:
         super().__init__()
         if region not in ("upper", "lower", "face"):
             raise ValueError(f"region must be upper, lower or face, got {region!r}")
@@ -149,11 +119,9 @@ class RegionLoss(nn.Module):
         self.skeleton = skeleton or Skeleton.default()
         joints = {"upper": UPPER_JOINTS, "lower": LOWER_JOINTS, "face": (JAW_JOINT,)}[region]
         self.joints = list(joints)
-        weights = torch.ones(len(joints)) if joint_weights is None else joint_weights.float().clone()
-        if weights.shape != (len(joints),):
-            raise ValueError(f"joint_weights must be ({len(joints)},) for the {region} region, got {tuple(weights.shape)}")
+        weights = torch.ones(len(joints))
         if region == "lower":
-            weights[self.joints.index(0)] *= 10.0  # the root
+            weights[self.joints.index(0)] = 10.0  # the root
         self.register_buffer("joint_weights", weights, persistent=False)
 
     def _rot6d(self, x: torch.Tensor) -> torch.Tensor:

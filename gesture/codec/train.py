@@ -37,7 +37,7 @@ from gesture.codec.checkpoint import MODEL_FILE, load_optimizer, save_codec, sav
 from gesture.codec.config import CodecFileConfig, load_codec_config
 from gesture.codec.data import load_motion_splits, sample_batch
 from gesture.codec.evaluation import evaluate
-from gesture.codec.losses import RegionLoss, balanced_joint_weights
+from gesture.codec.losses import RegionLoss
 from gesture.codec.model import GestureCodec
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
@@ -92,21 +92,13 @@ class CodecTrainer:
                 module.requires_grad_(False)
         # codebook buffers are kept in sync by the codebooks themselves (gesture.codec.quantizer)
         self.model = DDP(self.codec, broadcast_buffers=False) if dist.is_initialized() else self.codec
-        self.joint_weights = self._joint_weights()
         self.loss = RegionLoss(region, skeleton, train.log_speed_weight, train.speed_floor_mps,
-                               train.expression_mse_weight, self.joint_weights).to(device)
+                               train.expression_mse_weight).to(device)
         self.trained = [p for p in self.codec.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(self.trained, lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
         self.step = 0
         self.history: dict = {"step": [], "loss": [], "eval": []}
-
-    def _joint_weights(self) -> torch.Tensor | None:
-        """The loss's inverse-variance joint weights on the training data (None when train.balance_cap is 0)."""
-        if not self.config.train.balance_cap:
-            return None
-        features = torch.cat([s.features[self.region] for s in self.train_data])  # (T_total, nfeats)
-        return balanced_joint_weights(features, self.region, self.config.train.balance_cap)
 
     def _load_weights(self, directory: Path) -> None:
         from safetensors.torch import load_file
@@ -218,9 +210,7 @@ def main(argv: list[str] | None = None) -> int:
             dist.destroy_process_group()
     if trainer.rank == 0:
         final = trainer.history["eval"][-1]
-        weights = None if trainer.joint_weights is None else [round(float(w), 3) for w in trainer.joint_weights]
-        print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final,
-                          "joint_weights": weights}, indent=1))
+        print(json.dumps({"region": args.region, "first": trainer.history["eval"][0], "last": final}, indent=1))
     return 0
 
 
