@@ -101,8 +101,18 @@ def test_expression_mse_punishes_a_missed_blink_more_than_l1_does():
     assert float(missed["expressions_mse"]) > 4 * float(missed["expressions_l1"])
 
 
+def test_joint_position_weight_scales_only_the_position_term():
+    rng = np.random.default_rng(1)
+    target = torch.from_numpy(motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), np.zeros((12, 3)),
+                                                 rng.normal(size=(12, 100)))["upper"])[None]  # (1, 12, 258)
+    pred = target + 0.01 * torch.randn_like(target)
+    reference, heavy = RegionLoss("upper")(pred, target), RegionLoss("upper", joint_position_weight=100.0)(pred, target)
+    assert float(heavy["joints"]) == pytest.approx(10 * float(reference["joints"]), rel=1e-5)
+    assert float(heavy["geodesic"]) == pytest.approx(float(reference["geodesic"]))
+
+
 def test_negative_loss_weights_are_config_errors():
-    for name in ("log_speed_weight", "expression_mse_weight"):
+    for name in ("log_speed_weight", "expression_mse_weight", "joint_position_weight"):
         with pytest.raises(ConfigError, match=f"train.{name}: must be >= 0"):
             CodecTrainConfig(**{name: -1.0})
 

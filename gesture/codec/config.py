@@ -123,6 +123,7 @@ class CodecTrainConfig:
     log_speed_weight: float = 0.0  # not in the reference: see gesture.codec.losses
     speed_floor_mps: float = 0.005
     expression_mse_weight: float = 0.0  # not in the reference: see gesture.codec.losses
+    joint_position_weight: float = 10.0  # the reference's weight of the FK joint-position MSE
 
     def __post_init__(self) -> None:
         _check_positive("train", lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
@@ -132,7 +133,8 @@ class CodecTrainConfig:
         if self.window_frames % 2:
             raise ConfigError(f"train.window_frames: must be even (2 frames per step), got {self.window_frames}")
         non_negative = {"commitment_ramp_steps": self.commitment_ramp_steps, "holdout_seconds": self.holdout_seconds,
-                        "log_speed_weight": self.log_speed_weight, "expression_mse_weight": self.expression_mse_weight}
+                        "log_speed_weight": self.log_speed_weight, "expression_mse_weight": self.expression_mse_weight,
+                        "joint_position_weight": self.joint_position_weight}
         for name, value in non_negative.items():
             if value < 0:
                 raise ConfigError(f"train.{name}: must be >= 0, got {value}")

@@ -88,12 +88,13 @@ def rotation_terms(pred6d: torch.Tensor, gt6d: torch.Tensor, joint_weights: torc
     }
 
 
-def position_terms(pred_joints: torch.Tensor, gt_joints: torch.Tensor) -> dict[str, torch.Tensor]:
+def position_terms(pred_joints: torch.Tensor, gt_joints: torch.Tensor,
+                   joints_weight: float = 10.0) -> dict[str, torch.Tensor]:
     """(B, T, J, 3) joint positions in metres."""
     accel = velocity(velocity(pred_joints)).norm(dim=-1).flatten()
     top = accel.topk(max(1, int(TOP_FRACTION * accel.numel()))).values if accel.numel() else accel
     return {
-        "joints": 10 * _mse(pred_joints, gt_joints),
+        "joints": joints_weight * _mse(pred_joints, gt_joints),
         "joint_dynamics": 300 * _dynamics(pred_joints, gt_joints),
         "top_acceleration": 0.01 * (top.pow(2).mean() if top.numel() else accel.new_zeros(())),
     }
@@ -110,12 +111,13 @@ class RegionLoss(nn.Module):
     """`loss(pred, target) -> dict` of weighted terms and their sum under "total"."""
 
     def __init__(self, region: str, skeleton: Skeleton | None = None, log_speed_weight: float = 0.0,
-                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0) -> None:
+                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0,
+                 joint_position_weight: float = 10.0) -> None:
         super().__init__()
         if region not in ("upper", "lower", "face"):
             raise ValueError(f"region must be upper, lower or face, got {region!r}")
         self.region, self.log_speed_weight, self.speed_floor_mps = region, log_speed_weight, speed_floor_mps
-        self.expression_mse_weight = expression_mse_weight
+        self.expression_mse_weight, self.joint_position_weight = expression_mse_weight, joint_position_weight
         self.skeleton = skeleton or Skeleton.default()
         joints = {"upper": UPPER_JOINTS, "lower": LOWER_JOINTS, "face": (JAW_JOINT,)}[region]
         self.joints = list(joints)
@@ -156,7 +158,7 @@ class RegionLoss(nn.Module):
         return terms
 
     def _position_terms(self, pred_joints: torch.Tensor, gt_joints: torch.Tensor) -> dict[str, torch.Tensor]:
-        terms = position_terms(pred_joints, gt_joints)
+        terms = position_terms(pred_joints, gt_joints, self.joint_position_weight)
         if self.log_speed_weight:
             beat = list(UPPER_BODY_JOINTS)
             terms["log_speed"] = self.log_speed_weight * log_speed_error(

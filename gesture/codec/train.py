@@ -93,7 +93,7 @@ class CodecTrainer:
         # codebook buffers are kept in sync by the codebooks themselves (gesture.codec.quantizer)
         self.model = DDP(self.codec, broadcast_buffers=False) if dist.is_initialized() else self.codec
         self.loss = RegionLoss(region, skeleton, train.log_speed_weight, train.speed_floor_mps,
-                               train.expression_mse_weight).to(device)
+                               train.expression_mse_weight, train.joint_position_weight).to(device)
         self.trained = [p for p in self.codec.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(self.trained, lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
