@@ -47,7 +47,7 @@ def data_line(mix: Path) -> str:
 
 DECODER_STAGE = ("; stage `decoders`: `python -m gesture.train_codec --config configs/codec/default_small_finetune.yaml "
                  f"--region <region> --data $WORK/cache --finetune-decoder $WORK/codecs/<region> --out "
-                 f"$WORK/decoders/<region>` for {' and '.join(tuned)}, in parallel" if tuned else "")
+                 f"$WORK/decoders/<region> --steps <the region's steps>` for {' and '.join(tuned)}" if tuned else "")
 CODEC_TIMES = (f"codec stage (three regions in parallel on 2 cores) {int(times['codecs'])} s ("
                + ", ".join(f"{r} {int(times[f'codec_{r}'])} s" for r in ('upper', 'lower', 'face'))
                + f"), decoder fine-tuning {int(times.get('decoders', 0))} s")
@@ -61,10 +61,9 @@ TERMS = f"""## Terms
   terms too; the project's MIT licence covers the code only."""
 DECODER_TEXT = (f"""Then the decoder half is fine-tuned for {' and '.join(tuned)}, with the encoder and quantizer
 frozen (the codes, and so the LM's tokens, do not change): `configs/codec/default_small_finetune.yaml`, lr
-{DECODER['lr']:g}, batch {DECODER['batch_size']}, {DECODER['steps']} steps (`decoder_loss_curve.png`), with the
-reference's losses plus a log-joint-speed term (weight {DECODER['log_speed_weight']:g}, floor
-{DECODER['speed_floor_mps'] * 1000:g} mm/s, on the joints BeatAlign reads; `gesture.codec.losses`) that keeps holds
-and listening from wobbling.""" if tuned else "No decoder fine-tuning (`DECODER_REGIONS` is empty for this ship).")
+{DECODER['lr']:g}, batch {DECODER['batch_size']}, the steps in the table below (`decoder_loss_curve.png`), with the
+reference's losses but the FK joint-position MSE weighted {DECODER['joint_position_weight']:g} (the reference's 10;
+`gesture.codec.losses`), so that errors near the root, which move every joint after them, weigh more.""" if tuned else "No decoder fine-tuning (`DECODER_REGIONS` is empty for this ship).")
 SYNTH_COMMIT = gen.get('commit')
 synth_note = (f" The sessions were generated at commit {SYNTH_COMMIT} of the generator; a later commit (73247b8)"
               " scales an elbow's micro-motion down where it would hyperextend, so HEAD regenerates slightly different"

@@ -28,10 +28,10 @@ UPPER_CODEC_STEPS=${UPPER_CODEC_STEPS:-${CODEC_STEPS:-8000}}  # the shipped uppe
 LOWER_CODEC_STEPS=${LOWER_CODEC_STEPS:-${CODEC_STEPS:-1500}}  # held out 16.5 mm at 1500 steps
 FACE_CODEC_STEPS=${FACE_CODEC_STEPS:-${CODEC_STEPS:-5000}}  # the face needs more steps to carry blinks as well as the jaw
 DECODER_CONFIG=${DECODER_CONFIG:-configs/codec/default_small_finetune.yaml}
-# Off for the current ship: its log-speed weight was chosen on the data before the realism calibration; "upper lower"
-# (the regions that move the joints BeatAlign reads) runs it.
-DECODER_REGIONS=${DECODER_REGIONS:-}
-DECODER_STEPS=${DECODER_STEPS:-}
+DECODER_REGIONS=${DECODER_REGIONS:-}  # none for the current ship (configs/codec/default_small_finetune.yaml says why)
+DECODER_STEPS=${DECODER_STEPS:-}  # every region, when set (tiny runs); otherwise each region's own below
+UPPER_DECODER_STEPS=${UPPER_DECODER_STEPS:-${DECODER_STEPS:-4000}}
+LOWER_DECODER_STEPS=${LOWER_DECODER_STEPS:-${DECODER_STEPS:-3000}}
 LM_EPOCHS=${LM_EPOCHS:-300}  # the shipped LM (the config says 450: 300 fit the session that trained it)
 NICE=(nice -n "${NICE_LEVEL:-5}")
 export OPENBLAS_NUM_THREADS=1
@@ -80,10 +80,11 @@ train_codecs() {  # the three regions in parallel, each niced and single-threade
 
 finetune_decoders() {  # each region of $DECODER_REGIONS in parallel -> $WORK/decoders/<region>
   local region pids=()
+  declare -A region_steps=([upper]=$UPPER_DECODER_STEPS [lower]=$LOWER_DECODER_STEPS [face]=${DECODER_STEPS:-5000})
   for region in $DECODER_REGIONS; do
     "${NICE[@]}" "$PY" -m gesture.train_codec --config "$DECODER_CONFIG" --region "$region" --data "$WORK/cache" \
       --finetune-decoder "$WORK/codecs/$region" --out "$WORK/decoders/$region" \
-      ${DECODER_STEPS:+--steps "$DECODER_STEPS"} > "$WORK/decoder_$region.json" 2> "$WORK/decoder_$region.log" &
+      --steps "${region_steps[$region]}" > "$WORK/decoder_$region.json" 2> "$WORK/decoder_$region.log" &
     pids+=($!)
   done
   for pid in "${pids[@]}"; do wait "$pid"; done
