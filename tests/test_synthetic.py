@@ -14,11 +14,12 @@ from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
-from gesture.synth.agent import synthesize_agent_motion
+from gesture.synth.agent import soft_limit_angle, synthesize_agent_motion
 from gesture.synth.build import generate_dataset, generate_session, main as synthetic_main
 from gesture.synth.config import SynthConfig, build_synth_config, load_synth_config
 from gesture.synth.conversation import AGENT, USER, build_conversation
 from gesture.synth.face import FACE_PATTERNS
+from gesture.synth.ik import TwoBoneChain
 from tests.data.beat2_clip import CLIP_NPZ, needs_clip
 
 torch.set_num_threads(1)
@@ -122,12 +123,30 @@ def test_motion_is_smooth(session):
     rot = axis_angle_to_matrix(session["poses"].astype(np.float64))  # (T, 55, 3, 3)
     rel = np.einsum("tjik,tjil->tjkl", rot[:-1], rot[1:])
     step = np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1))  # (T-1, 55) rad per frame
-    # the real BEAT2 clip peaks at 0.40 rad per frame (elbows, wrists); the synthetic shoulders reach 0.52 where the
-    # arm IK twists the upper arm near full extension
+    # the real BEAT2 clip peaks at 0.40 rad per frame (elbows, wrists); the synthetic arms reach ~0.37 (the arm IK's
+    # elbow changes at most 0.25 rad per frame where a target moves out to full extension)
     assert step.max() < 0.55
     accel = np.linalg.norm(np.diff(session["joints"], 2, axis=0), axis=-1) * FPS**2  # (T-2, 55) m/s^2
     # the real BEAT2 clip: 28.5 m/s^2 (max 42.7); the planned gestures alone reach ~32, the micro-motion adds ~7-10
     assert np.percentile(accel, 99.9) < 45.0
+
+
+def test_arm_ik_eases_into_full_extension_and_joint_angles_are_soft_limited():
+    rest = Skeleton.default().rest_joints.astype(np.float64)
+    bones = (rest[18] - rest[16], rest[20] - rest[18], np.array([0.0, -1.0, 0.0]))
+    reach = np.linalg.norm(bones[0]) + np.linalg.norm(bones[1])
+    out = bones[0] + bones[1]
+    dist = np.concatenate([np.full(5, 0.7), np.linspace(0.7, 1.1, 6), np.full(10, 1.1)]) * reach  # 4 cm per frame
+    target, n = dist[:, None] * out / np.linalg.norm(out), len(dist)
+    args = (np.zeros((n, 3)), np.broadcast_to(np.eye(3), (n, 3, 3)), target, np.broadcast_to([0.0, 0.0, -1.0], (n, 3)))
+    _, free = TwoBoneChain(*bones, min_flex_rad=0.2).solve(*args)
+    _, eased = TwoBoneChain(*bones, min_flex_rad=0.2, max_flex_step_rad=0.25).solve(*args)
+    assert np.abs(np.diff(free)).max() > 0.4 and np.abs(np.diff(eased)).max() <= 0.25 + 1e-9
+    assert np.isclose(eased[-1], free[-1])  # it catches up
+    aa = np.array([[0.0, 0.0, a] for a in np.linspace(0.0, 3.1, 32)])
+    limited = np.linalg.norm(soft_limit_angle(aa, 2.2, 2.55), axis=-1)
+    assert np.allclose(limited[aa[:, 2] <= 2.2], aa[aa[:, 2] <= 2.2, 2]) and limited.max() < 2.55
+    assert (np.diff(limited) >= 0).all() and (np.diff(limited) <= np.diff(aa[:, 2]) + 1e-12).all()
 
 
 def test_feet_planted_and_on_the_floor(session):
@@ -259,8 +278,8 @@ def test_stored_micro_motion_covers_the_torso_head_and_arms():
 @needs_clip
 def test_agent_driven_by_the_clip_speech_matches_its_statistics():
     """Issue 18's calibration goal, on the real clip's own speech and word timings (mean of three seeds): every
-    speed, stillness and diversity ratio of wrists, elbows, neck+head and spine within 0.8-1.25; L1div within 20 %
-    (measured: -17 %, so the goal's 15 % is not met yet: the legs and hands spread less than the real speaker's)."""
+    speed, stillness and diversity ratio of wrists, elbows, neck+head and spine within 0.8-1.25; L1div within 15 %
+    (measured: 0.880 / 1.013 / 0.930 of the real clip's for seeds 0 / 1 / 2, mean 0.941; seeds 3-5: mean 0.935)."""
     from gesture.eval import metrics as M
     from gesture.eval import realism as R
     from gesture.synth.recording import motion_for_recording, recognised_words
@@ -278,5 +297,5 @@ def test_agent_driven_by_the_clip_speech_matches_its_statistics():
         for key in ("speed_median", "speed_p90", "still_fraction", "diversity"):
             ratio = np.mean([r["ratios"]["groups"][group][key] for r in reports])
             assert 0.8 <= ratio <= 1.25, (group, key, ratio)
-    assert abs(np.mean([r["ratios"]["l1div"] for r in reports]) - 1) <= 0.20
+    assert abs(np.mean([r["ratios"]["l1div"] for r in reports]) - 1) <= 0.15
     assert min(r["protocol"]["beat_align"] for r in reports) > 0.5  # real clip: 0.71; the uncalibrated agent: 0.09

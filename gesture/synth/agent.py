@@ -7,7 +7,8 @@ head (speaking nods on stressed words, per-sentence tilts/turns, listening nods 
 -> face (jaw from the agent's speech envelope, blinks, brows, smiles, mouth shapes; face.py) -> micro-motion:
 band-limited rotation noise on the torso, neck, head and arm joints (real speakers are never still), its size
 and bandwidth per joint fitted to the real clip (calibration.json ``micro_motion``), louder with the agent's
-own speech and calmer while it listens.
+own speech and calmer while it listens. The collars, elbows and wrists end within soft range-of-motion limits
+(``JOINT_SOFT_LIMITS_RAD``, at the real clip's tail).
 The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels.
 """
 
@@ -42,7 +43,17 @@ MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40
 MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
 ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
 MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
+ROOT_MICRO_MAX_RAD = 0.45  # the pelvis's micro-motion turns it at most about this far (soft limit, tanh): over planted
+# feet a larger turn is a step, not a sway (the fitted noise's tail otherwise reaches ~1 rad)
 NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
+ARM_MIN_FLEX_RAD = 0.2  # the elbows never lock straight (real: the forearm points >= 0.135 forwards in 99 % of frames)
+ARM_MAX_FLEX_STEP_RAD = 0.25  # per frame (real: the fastest joint turns 0.40 rad per frame), see gesture.synth.ik
+# The arm joints' range of motion (rad, the local rotation's angle): the calibrated micro-motion (std up to 0.59 rad per
+# axis on the elbows and wrists, gated up to 1.5x) on top of a flexed elbow or a bent wrist otherwise reaches ~3 rad.
+# Soft limits (identity below the knee, tanh above it, never past the cap) at the real clip's tail: its collars reach
+# 0.60/0.68 (p99 0.52/0.57), elbows 1.91/2.45 (p99 1.86/2.37), wrists 1.22/1.30 (p99 1.11/1.17).
+JOINT_SOFT_LIMITS_RAD = {**{j: (0.55, 0.68) for j in (13, 14)}, **{j: (2.2, 2.55) for j in (18, 19)},
+                         **{j: (1.1, 1.4) for j in (20, 21)}}  # joint -> (knee, cap)
 POLE_OUT, POLE_DOWN = 0.15, -0.8  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
 SIDE_JOINTS = {  # (collar, shoulder, elbow, wrist, hip, knee, ankle, foot) per side
     "left": (13, 16, 18, 20, 1, 4, 7, 10),
@@ -189,6 +200,14 @@ def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int,
             for j, (std, hz) in sorted(params.items())}
 
 
+def soft_limit_angle(aa: np.ndarray, knee: float, cap: float) -> np.ndarray:
+    """(..., 3) axis-angle rotations with their angles eased above ``knee`` towards ``cap`` (same axes; the map
+    is continuous with slope <= 1, so it never adds a jump)."""
+    angle = np.linalg.norm(aa, axis=-1, keepdims=True)
+    eased = knee + (cap - knee) * np.tanh((angle - knee) / (cap - knee))
+    return aa * np.where(angle > knee, eased / np.maximum(angle, 1e-9), 1.0)
+
+
 def _aa(v) -> np.ndarray:
     return axis_angle_to_matrix(np.asarray(v, np.float64))
 
@@ -203,7 +222,8 @@ class BodySolver:
         self.arm_chains, self.leg_chains = {}, {}
         for side, sign in (("left", 1.0), ("right", -1.0)):
             _, sh, el, wr, hip, kn, an, _ = SIDE_JOINTS[side]
-            self.arm_chains[side] = TwoBoneChain(rest[el] - rest[sh], rest[wr] - rest[el], np.array([0.0, -sign, 0.0]))
+            self.arm_chains[side] = TwoBoneChain(rest[el] - rest[sh], rest[wr] - rest[el], np.array([0.0, -sign, 0.0]),
+                                                 min_flex_rad=ARM_MIN_FLEX_RAD, max_flex_step_rad=ARM_MAX_FLEX_STEP_RAD)
             self.leg_chains[side] = TwoBoneChain(rest[kn] - rest[hip], rest[an] - rest[kn], np.array([1.0, 0.0, 0.0]),
                                                  min_flex_rad=0.05, max_flex_rad=1.2)
 
@@ -267,14 +287,18 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
     speaking = speaking_frames(conv, n, fps)
     energy = LISTENING_ENERGY + (1 - LISTENING_ENERGY) * gaussian_filter1d(speaking, 8)
     env = speech_envelope(conv.channels[AGENT], conv.sample_rate_hz, n, fps)
-    posture = plan_posture(rng, n, fps, energy, skeleton)
+    stance_rng = np.random.default_rng(rng.integers(2**63))  # its own stream: the stance's steps leave the rest alone
+    posture = plan_posture(stance_rng, n, fps, energy, skeleton)
     arms = plan_arms(cfg, rng, conv, n, fps, energy)
     head, nods = plan_head(rng, conv, n, fps, energy, env, speaking)
     expressions = plan_face(rng, conv, n, fps, env, nods)
     params = load_calibration().micro_motion if micro is None else micro
     offsets = micro_motion(rng, n, fps, params, micro_motion_scale(speaking, env, fps))
     if 0 in offsets:  # the pelvis turns before the legs are solved, so the feet stay planted
-        posture.root_offset_aa = posture.root_offset_aa + offsets.pop(0)
+        root = offsets.pop(0)
+        angle = np.maximum(np.linalg.norm(root, axis=-1, keepdims=True), 1e-9)
+        eased = ROOT_MICRO_MAX_RAD * np.tanh(angle / ROOT_MICRO_MAX_RAD)
+        posture.root_offset_aa = posture.root_offset_aa + root * (eased / angle)
     solver = BodySolver(skeleton)
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
     for j, offset in offsets.items():
@@ -282,6 +306,8 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
         scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]
         local[:, j] = local[:, j] @ _aa(scale * offset)
     poses = matrix_to_axis_angle(local)  # (T, 55, 3)
+    for j, (knee, cap) in JOINT_SOFT_LIMITS_RAD.items():
+        poses[:, j] = soft_limit_angle(poses[:, j], knee, cap)
     poses[:, 22] = solver.base[22] + np.stack([JAW_OPEN_RAD * env, 0 * env, 0 * env], -1)
     poses[:, 23:25] = 0.0
     poses[:, 25:55] = blend_hands(arms.hand)

@@ -4,7 +4,10 @@ A chain root -> mid -> end (shoulder -> elbow -> wrist, hip -> knee -> ankle) ha
 (from the skeleton's rest joints) and a hinge at the mid joint with a fixed axis h in its local frame
 (positive angles flex). Given the root's world position and its parent's world rotation, an end target
 and a pole direction (where the mid joint should point), we solve:
-1. the hinge angle theta with |b + R_h(theta) c| = |target - root| (clamped to a flexion range);
+1. the hinge angle theta with |b + R_h(theta) c| = |target - root| (clamped to a flexion range); with
+   ``max_flex_step_rad`` it changes at most that much per frame: near full extension the angle's derivative
+   against the distance grows as 1 / sin(flex), so a target moving 4 cm per frame out to the chain's reach would
+   otherwise swing the mid joint ~0.5 rad in one frame (the end then lags its target for a frame or two);
 2. the root's world rotation mapping (b + R_h(theta) c) onto the target direction with b on the pole side.
 Both rest vectors are used exactly, so the end lands on the target whenever it is reachable.
 """
@@ -29,6 +32,14 @@ def _frame(e1: np.ndarray, e2_hint: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, np.cross(e1, e2)], -1)
 
 
+def rate_limited(x: np.ndarray, max_step: float) -> np.ndarray:
+    """(T,) ``x`` followed, changing at most ``max_step`` per frame."""
+    out = x.astype(np.float64).tolist()
+    for t in range(1, len(out)):
+        out[t] = min(max(out[t], out[t - 1] - max_step), out[t - 1] + max_step)
+    return np.asarray(out)
+
+
 @dataclass(frozen=True)
 class TwoBoneChain:
     bone_b: np.ndarray  # (3,) rest root -> mid
@@ -36,6 +47,7 @@ class TwoBoneChain:
     hinge_axis: np.ndarray  # (3,) unit, in the mid joint's local (rest) frame
     min_flex_rad: float = 0.12
     max_flex_rad: float = 2.4
+    max_flex_step_rad: float | None = None  # per frame (None: unlimited, the end lands on every reachable target)
 
     def solve(
         self, root_pos: np.ndarray, parent_rot: np.ndarray, target: np.ndarray, pole: np.ndarray
@@ -55,6 +67,8 @@ class TwoBoneChain:
         k = (dist2 - b @ b - c @ c - 2 * (b @ c_par)) / (2 * magnitude)
         flex = np.arccos(np.clip(k, -1.0, 1.0))  # (T,) angle past straight
         flex = np.clip(flex, self.min_flex_rad, self.max_flex_rad)
+        if self.max_flex_step_rad is not None:
+            flex = rate_limited(flex, self.max_flex_step_rad)
         theta = phase + flex  # R_h(phase) lines c_perp up with b_perp: straight
         hinge = axis_angle_to_matrix(theta[:, None] * h)  # (T, 3, 3)
         v_rest = b + hinge @ c  # (T, 3) root -> end in the rest frame

@@ -1,9 +1,11 @@
-"""Stance and posture: planted feet with occasional steps, weight shifts, sway and breathing.
+"""Stance and posture: planted feet with stance changes, weight shifts, sway and breathing.
 
-The feet are world-space targets for the leg IK: flat on the floor, planted except while stepping (every
-20-60 s the agent re-centres its stance: one foot lifts 4-6 cm and moves, the other follows). The pelvis
-shifts its weight between the feet (the unloaded hip drops a little and the spine leans back to keep the
-head level), sways slowly, and breathes.
+The feet are world-space targets for the leg IK: flat on the floor, planted except while stepping. Every
+``STANCE_HOLD_S`` the agent changes its stance: one foot (or both, one after the other) lifts 4-6 cm and moves to a
+new stance of its own width and fore-aft stagger (``STANCE_*``, against the real clip's feet). The pelvis shifts its
+weight towards one foot or the other (the unloaded hip drops a little, the knees dip, and the spine leans back to
+keep the head level), sways slowly, and breathes; it is lowered where a wide or staggered stance would otherwise
+stretch a leg straight.
 """
 
 from __future__ import annotations
@@ -18,6 +20,22 @@ from gesture.synth.tracks import KeyTrack, add_bump, smooth_noise
 TRANS_Y_M = 1.27  # pelvis translation height: legs slightly bent, feet on the floor (see gesture.body.skeleton)
 FOOT_STEP_S = 0.55  # one foot step (lift, swing, plant), not the 80 ms step of the loop
 FOOT_LIFT_M = (0.04, 0.06)
+FOOT_MAX_RATE_MPS = 1.0
+# The stance against the real clip (2_scott_0_1_1, feet in the world): full width p5/p50/p95 0.12/0.23/0.37 m,
+# fore-aft stagger between the feet p5/p95 -0.31/+0.31 m, the feet moving in ~20 % of its frames (mostly short
+# shuffles; the synthetic agent makes fewer, clean steps: its feet stay planted in >= 90 % of frames).
+STANCE_HOLD_S = (5.0, 14.0)  # between stance changes
+STANCE_HALF_WIDTH_M = (0.06, 0.18)
+STANCE_STAGGER_STD_M = 0.19
+STANCE_STAGGER_MAX_M = 0.4
+ONE_FOOT_PROB = 0.6  # a stance change moves one foot; else both, one after the other
+STANCE_DRIFT_M = 0.06  # the stance's centre wanders (a random walk with this step, pulled back to the start)
+# The pelvis against the feet (real: its offset from the feet's centre has std 0.07 m sideways, 0.05 m fore-aft,
+# 0.03 m in height)
+WEIGHT_SHIFT_S = (3.0, 10.0)  # between weight shifts
+WEIGHT_SHIFT_SHARE = 0.55  # of the way from the feet's centre to the loaded foot
+KNEE_DIP_M = 0.035  # the pelvis lowers this much with the weight fully on one foot
+LEG_REACH_SHARE = 0.97  # hip to ankle at most this share of the leg's length: the knees never lock
 
 
 @dataclass
@@ -31,6 +49,27 @@ class Posture:
     planted: np.ndarray  # (T, 2) 1 where the foot is on the floor and not moving
 
 
+def _stance(rng: np.random.Generator, centre: np.ndarray, ankle_z: float) -> np.ndarray:
+    """(2 feet L/R, 2 xz) a new stance around ``centre`` (xz)."""
+    half_width = rng.uniform(*STANCE_HALF_WIDTH_M)
+    stagger = float(np.clip(rng.normal(0.0, STANCE_STAGGER_STD_M), -STANCE_STAGGER_MAX_M, STANCE_STAGGER_MAX_M))
+    return np.array([[centre[0] + half_width, ankle_z + centre[1] + stagger / 2],
+                     [centre[0] - half_width, ankle_z + centre[1] - stagger / 2]])
+
+
+def _pelvis_height(skeleton: Skeleton, trans_xz: np.ndarray, ankles: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """(T,) the pelvis translation height: ``nominal``, lowered where a hip would be too far from its ankle."""
+    rest = skeleton.rest_joints.astype(np.float64)
+    height = nominal.copy()
+    for s, (hip, knee, ankle) in enumerate(((1, 4, 7), (2, 5, 8))):
+        reach = LEG_REACH_SHARE * (np.linalg.norm(rest[knee] - rest[hip]) + np.linalg.norm(rest[ankle] - rest[knee]))
+        hip_xz = trans_xz + rest[hip, [0, 2]]
+        flat2 = ((ankles[:, s, [0, 2]] - hip_xz) ** 2).sum(-1)
+        highest = ankles[:, s, 1] + np.sqrt(np.maximum(reach**2 - flat2, 0.0)) - rest[hip, 1]
+        height = np.minimum(height, highest)
+    return height
+
+
 def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np.ndarray,
                  skeleton: Skeleton | None = None) -> Posture:
     skeleton = skeleton or Skeleton.default()
@@ -38,45 +77,41 @@ def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np
     duration = n_frames / fps
     ankle_y = float(skeleton.rest_joints[7, 1]) + 1.3
     ankle_z = float(skeleton.rest_joints[7, 2])
-    width = rng.uniform(0.09, 0.14)
-    feet = [KeyTrack((side * width, ankle_z), max_rate=0.6) for side in (1.0, -1.0)]  # (x, z) per foot
-    centre = KeyTrack((0.0, 0.0))
+    c = np.zeros(2)
+    stance = _stance(rng, c, ankle_z)
+    feet = [KeyTrack(stance[k], max_rate=FOOT_MAX_RATE_MPS) for k in range(2)]  # (x, z) per foot
     lift = np.zeros((n_frames, 2))
     planted = np.ones((n_frames, 2))
-    t = rng.uniform(15.0, 45.0)
-    c = np.zeros(2)
+    t = rng.uniform(*STANCE_HOLD_S)
     while t + 2 * FOOT_STEP_S + 0.3 < duration:
-        c = 0.6 * c + rng.normal(0.0, 0.06, 2)
-        width = rng.uniform(0.09, 0.14)
+        c = 0.6 * c + rng.normal(0.0, STANCE_DRIFT_M, 2)
+        stance = _stance(rng, c, ankle_z)
         first = int(rng.integers(2))
-        for k, foot in enumerate((first, 1 - first)):
+        moving = (first,) if rng.random() < ONE_FOOT_PROB else (first, 1 - first)
+        for k, foot in enumerate(moving):
             start = t + k * (FOOT_STEP_S + 0.1)
-            side = 1.0 if foot == 0 else -1.0
             feet[foot].hold(start)
-            feet[foot].key(start + FOOT_STEP_S, (c[0] + side * width, ankle_z + c[1] + rng.normal(0, 0.02)))
+            feet[foot].key(start + FOOT_STEP_S, stance[foot])
             add_bump(lift[:, foot], fps, start + FOOT_STEP_S / 2, FOOT_STEP_S / 2, 0.0, FOOT_STEP_S / 2, rng.uniform(*FOOT_LIFT_M))
             planted[int(start * fps): int((start + FOOT_STEP_S) * fps) + 2, foot] = 0.0
-        centre.hold(t)
-        centre.key(t + 2 * FOOT_STEP_S + 0.1, c)
-        t += 2 * FOOT_STEP_S + rng.uniform(20.0, 60.0)
+        t += len(moving) * (FOOT_STEP_S + 0.1) + rng.uniform(*STANCE_HOLD_S)
     xz = np.stack([f.evaluate(times) for f in feet], 1)  # (T, 2, 2)
     ankles = np.stack([xz[..., 0], ankle_y + lift, xz[..., 1]], -1)  # (T, 2, 3)
 
     shift = KeyTrack(0.0)  # +1: weight on the left foot
-    t = rng.uniform(2.0, 8.0)
+    t = rng.uniform(1.0, WEIGHT_SHIFT_S[1])
     while t < duration:
         shift.hold(t)
         shift.key(t + rng.uniform(0.8, 1.6), rng.choice([-1.0, -0.6, 0.0, 0.6, 1.0]))
-        t += rng.uniform(5.0, 18.0)
+        t += rng.uniform(*WEIGHT_SHIFT_S)
     weight = shift.evaluate(times)[:, 0]  # (T,)
     sway = smooth_noise(rng, n_frames, fps, 0.15, 5) * (0.6 + 0.4 * energy[:, None])  # (T, 5)
-    mid = centre.evaluate(times)  # (T, 2)
-    half_width = np.abs(xz[:, 0, 0] - xz[:, 1, 0]) / 2
-    trans = np.stack([
-        mid[:, 0] + 0.4 * half_width * weight + 0.008 * sway[:, 0],
-        TRANS_Y_M - 0.006 * np.abs(weight) + 0.002 * sway[:, 1],
-        mid[:, 1] + 0.01 * sway[:, 2],
-    ], -1)
+    mid = xz.mean(1)  # (T, 2) the feet's centre
+    to_left = (xz[:, 0] - xz[:, 1]) / 2  # (T, 2) from the centre to the left foot
+    trans_xz = mid + WEIGHT_SHIFT_SHARE * weight[:, None] * to_left + sway[:, [0, 2]] * (0.008, 0.01)
+    trans_xz[:, 1] -= ankle_z  # the feet stand ankle_z from the pelvis (z)
+    nominal = TRANS_Y_M - KNEE_DIP_M * np.abs(weight) + 0.002 * sway[:, 1]
+    trans = np.stack([trans_xz[:, 0], _pelvis_height(skeleton, trans_xz, ankles, nominal), trans_xz[:, 1]], -1)
     root = np.stack([0.012 * sway[:, 3], 0.035 * sway[:, 4], 0.035 * weight], -1)  # pitch, yaw, roll
     breath_hz = rng.uniform(0.2, 0.3)
     breath = np.sin(2 * np.pi * breath_hz * times + rng.uniform(0, 2 * np.pi))
