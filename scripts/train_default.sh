@@ -80,11 +80,12 @@ train_codecs() {  # the three regions in parallel, each niced and single-threade
 
 finetune_decoders() {  # each region of $DECODER_REGIONS in parallel -> $WORK/decoders/<region>
   local region pids=()
-  declare -A region_steps=([upper]=$UPPER_DECODER_STEPS [lower]=$LOWER_DECODER_STEPS [face]=${DECODER_STEPS:-5000})
+  local -A region_steps=([upper]=$UPPER_DECODER_STEPS [lower]=$LOWER_DECODER_STEPS)
   for region in $DECODER_REGIONS; do
+    local steps=${region_steps[$region]:-$DECODER_STEPS}  # the face: DECODER_STEPS, else the config's
     "${NICE[@]}" "$PY" -m gesture.train_codec --config "$DECODER_CONFIG" --region "$region" --data "$WORK/cache" \
       --finetune-decoder "$WORK/codecs/$region" --out "$WORK/decoders/$region" \
-      --steps "${region_steps[$region]}" > "$WORK/decoder_$region.json" 2> "$WORK/decoder_$region.log" &
+      ${steps:+--steps "$steps"} > "$WORK/decoder_$region.json" 2> "$WORK/decoder_$region.log" &
     pids+=($!)
   done
   for pid in "${pids[@]}"; do wait "$pid"; done

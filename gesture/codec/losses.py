@@ -88,8 +88,7 @@ def rotation_terms(pred6d: torch.Tensor, gt6d: torch.Tensor, joint_weights: torc
     }
 
 
-def position_terms(pred_joints: torch.Tensor, gt_joints: torch.Tensor,
-                   joints_weight: float = 10.0) -> dict[str, torch.Tensor]:
+def position_terms(pred_joints: torch.Tensor, gt_joints: torch.Tensor, joints_weight: float) -> dict[str, torch.Tensor]:
     """(B, T, J, 3) joint positions in metres."""
     accel = velocity(velocity(pred_joints)).norm(dim=-1).flatten()
     top = accel.topk(max(1, int(TOP_FRACTION * accel.numel()))).values if accel.numel() else accel
