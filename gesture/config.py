@@ -10,6 +10,7 @@ from typing import Literal, Optional
 
 from core.config import ConfigError
 from core.spec import ConditionSpec
+from gesture.synth.config import LAYERED_MICRO_JOINTS
 
 
 @dataclass(frozen=True)
@@ -34,7 +35,7 @@ class MicroMotionConfig:
     """The micro-motion layer on the decoded pose (gesture.micro_motion; not in the reference, off by default)."""
 
     enabled: bool = False
-    joints: tuple[int, ...] = (3, 6, 9, 12, 13, 14, 15, 20, 21)  # spine, neck, collars, head, wrists
+    joints: tuple[int, ...] = LAYERED_MICRO_JOINTS  # spine, neck, collars, head, wrists: the training data's layer
     scale: float = 1.0  # times every fitted standard deviation
     blinks_per_minute: float = 17.0  # the synthetic agent's (gesture.synth.face.BLINKS_PER_MINUTE); 0: none
 

@@ -7,6 +7,8 @@ explains none of the spine, neck, head and collar rotations (R^2 <= 0.05 on held
 nor warm starts changed that within 4000 steps; so the decoded agent held those joints still 3x as often as the
 real speaker (the README's realism section).
 
+So the synthetic data splits the two: each session's ``gesture_poses`` leave out the micro-motion of these joints
+(gesture.synth.config.LAYERED_MICRO_JOINTS), and the codecs and the LM learn only that gesture layer.
 The layer adds the micro-motion model of the synthetic training data (`gesture.synth`, calibration.json
 ``micro_motion``, fitted on the real BEAT2 clip): per joint and axis, low-passed Gaussian noise of the fitted
 standard deviation and cutoff, times a slow log-normal gate per body part, calmer while the agent listens, softly

@@ -211,6 +211,11 @@ def test_malformed_files_name_the_file(tmp_path):
     np.savez(bad, poses=np.zeros((5, 160)), trans=np.zeros((5, 3)), expressions=np.zeros((5, 100)), mocap_frame_rate=30)
     with pytest.raises(DataError, match=r"'poses' must be \(T, 165\)"):
         read_motion(bad)
+    np.savez(bad, poses=np.zeros((5, 165)), gesture_poses=np.zeros((4, 165)), trans=np.zeros((5, 3)),
+             expressions=np.zeros((5, 100)), mocap_frame_rate=30)
+    assert read_motion(bad).poses.shape == (5, 55, 3)
+    with pytest.raises(DataError, match=r"'trans' must be \(4, 3\) to match 'gesture_poses'"):
+        read_motion(bad, gesture_layer=True)
     bad.write_text("garbage")
     with pytest.raises(DataError, match="not a readable npz"):
         read_motion(bad)

@@ -16,7 +16,8 @@ from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
 from gesture.synth.agent import soft_limit_angle, synthesize_agent_motion
 from gesture.synth.build import generate_dataset, generate_session, main as synthetic_main
-from gesture.synth.config import SynthConfig, build_synth_config, load_synth_config
+from gesture.config import MicroMotionConfig
+from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig, build_synth_config, load_synth_config
 from gesture.synth.conversation import AGENT, USER, build_conversation
 from gesture.synth.face import FACE_PATTERNS
 from gesture.synth.ik import TwoBoneChain
@@ -89,6 +90,18 @@ def test_beat2_reader_reads_the_output_and_builds_chunks(dataset):
     assert chunks.num_chunks == 6 and chunks.has_audio
     assert chunks.upper.shape == (6, 250, 258) and chunks.lower.shape == (6, 250, 61) and chunks.face.shape == (6, 250, 106)
     assert np.isfinite(chunks.upper).all() and np.abs(chunks.audio).max() > 0.05
+
+
+def test_gesture_layer_leaves_out_only_the_runtime_layers_micro_motion(dataset, session):
+    """``gesture_poses`` (what the codecs learn) differ from ``poses`` on exactly the joints whose micro-motion the
+    agent adds at run time, and the codec/LM readers take them."""
+    layer = session["gesture_poses"].reshape(-1, 55, 3)
+    moved = np.abs(session["poses"] - layer).max(axis=(0, 2))  # (55,)
+    assert set(np.flatnonzero(moved > 1e-3)) == set(LAYERED_MICRO_JOINTS)
+    assert set(LAYERED_MICRO_JOINTS) == set(MicroMotionConfig().joints)
+    take = find_takes(dataset[0])[0]
+    assert np.array_equal(read_motion(take.motion_path, gesture_layer=True).poses, layer)
+    assert np.array_equal(read_motion(take.motion_path).poses, session["poses"])
 
 
 def test_files_hold_both_speakers_and_the_agent_channel(dataset, session):

@@ -139,8 +139,13 @@ def _fps_of(data, path: Path) -> float:
     raise DataError(path, "motion file has no 'mocap_frame_rate' and its folder does not name the rate")
 
 
-def read_motion(path: Path | str) -> Motion:
-    """A BEAT2 SMPL-X/FLAME npz: poses (T, 165), trans (T, 3), expressions (T, 100), betas, frame rate."""
+GESTURE_POSES_KEY = "gesture_poses"  # synthetic data: the poses without the agent's runtime micro-motion
+
+
+def read_motion(path: Path | str, gesture_layer: bool = False) -> Motion:
+    """A BEAT2 SMPL-X/FLAME npz: poses (T, 165), trans (T, 3), expressions (T, 100), betas, frame rate.
+    ``gesture_layer``: the poses the codecs model, ``gesture_poses`` where the file has them (synthetic data, see
+    gesture.synth.build), else ``poses``."""
     path = Path(path)
     if not path.is_file():
         raise DataError(path, "motion file not found")
@@ -149,25 +154,26 @@ def read_motion(path: Path | str) -> Motion:
     except (OSError, ValueError) as err:
         raise DataError(path, f"not a readable npz ({err})") from err
     with data:
-        poses = _array(data, "poses", path)
+        key = GESTURE_POSES_KEY if gesture_layer and GESTURE_POSES_KEY in data.files else "poses"
+        poses = _array(data, key, path)
         trans = _array(data, "trans", path)
         expressions = _array(data, "expressions", path)
         betas = _array(data, "betas", path) if "betas" in data.files else np.zeros(300)
         fps = _fps_of(data, path)
     t = len(poses)
     if poses.ndim != 2 or poses.shape[1] != NUM_JOINTS * 3:
-        raise DataError(path, f"'poses' must be (T, {NUM_JOINTS * 3}), got {poses.shape}")
+        raise DataError(path, f"'{key}' must be (T, {NUM_JOINTS * 3}), got {poses.shape}")
     if trans.shape != (t, 3):
-        raise DataError(path, f"'trans' must be ({t}, 3) to match 'poses', got {trans.shape}")
+        raise DataError(path, f"'trans' must be ({t}, 3) to match '{key}', got {trans.shape}")
     if expressions.shape != (t, NUM_EXPRESSIONS):
-        raise DataError(path, f"'expressions' must be ({t}, {NUM_EXPRESSIONS}) to match 'poses', got {expressions.shape}")
+        raise DataError(path, f"'expressions' must be ({t}, {NUM_EXPRESSIONS}) to match '{key}', got {expressions.shape}")
     if t < 2:
         raise DataError(path, f"motion has {t} frame(s); need at least 2")
     if fps <= 0:
         raise DataError(path, f"frame rate must be positive, got {fps}")
-    for key, arr in (("poses", poses), ("trans", trans), ("expressions", expressions)):
+    for name, arr in ((key, poses), ("trans", trans), ("expressions", expressions)):
         if not np.isfinite(arr).all():
-            raise DataError(path, f"'{key}' contains NaN or inf")
+            raise DataError(path, f"'{name}' contains NaN or inf")
     return Motion(
         poses=poses.reshape(t, NUM_JOINTS, 3).astype(np.float32),
         trans=trans.astype(np.float32),

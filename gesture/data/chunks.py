@@ -63,7 +63,7 @@ def _audio_window(audio: np.ndarray, first: int, length: int) -> np.ndarray:
 
 def chunk_take(take: Take, cfg: DataConfig, skeleton: Optional[Skeleton] = None) -> TakeChunks:
     """Non-overlapping ``cfg.chunk_frames`` chunks of a take (a shorter tail is dropped)."""
-    motion = motion_at_fps(read_motion(take.motion_path), cfg.motion_fps)
+    motion = motion_at_fps(read_motion(take.motion_path, gesture_layer=True), cfg.motion_fps)
     audio = load_audio(take.audio_path, cfg.audio_sample_rate_hz) if take.audio_path else None
     words = read_words(take)
     n_frames = cfg.chunk_frames

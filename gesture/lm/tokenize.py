@@ -159,7 +159,7 @@ def frame_vad_of(take: Take) -> Optional[np.ndarray]:
 
 
 def tokenize_take(take: Take, codecs: dict[str, GestureCodec], tokenizer: SpeechTokenizer) -> TokenizedTake:
-    motion = motion_at_fps(read_motion(take.motion_path), MOTION_FPS)
+    motion = motion_at_fps(read_motion(take.motion_path, gesture_layer=True), MOTION_FPS)
     gesture_tokens = encode_motion(codecs, motion.poses, motion.trans, motion.expressions)  # (K, S)
     n_steps = gesture_tokens.shape[1]
     audio_path = agent_audio_path(take)

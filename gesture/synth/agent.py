@@ -9,7 +9,8 @@ band-limited rotation noise on the torso, neck, head and arm joints (real speake
 and bandwidth per joint fitted to the real clip (calibration.json ``micro_motion``), louder with the agent's
 own speech and calmer while it listens. The collars, elbows and wrists end within soft range-of-motion limits
 (``JOINT_SOFT_LIMITS_RAD``, at the real clip's tail).
-The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels.
+The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels, and
+``gesture_poses``: the poses without the micro-motion of ``LAYERED_MICRO_JOINTS``, which the agent adds at run time.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from core.body import NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
 from gesture.body.skeleton import Skeleton, forward_kinematics
 from gesture.synth.calibration import load_calibration
-from gesture.synth.config import SynthConfig
+from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig
 from gesture.synth.conversation import AGENT, USER, MIN_PAUSE_S, Conversation, activity_frames
 from gesture.synth.face import JAW_OPEN_RAD, blink_track, expressions_from_activations
 from gesture.synth.gestures import ArmTracks, plan_arms
@@ -69,6 +70,7 @@ class AgentMotion:
     vad: np.ndarray  # (T,) uint8 agent voice activity
     user_vad: np.ndarray  # (T,) uint8
     planted: np.ndarray  # (T, 2) planned foot contacts (left, right)
+    gesture_poses: np.ndarray  # (T, 55, 3) the poses without the micro-motion of LAYERED_MICRO_JOINTS
 
 
 def speech_envelope(pcm: np.ndarray, sample_rate_hz: int, n_frames: int, fps: float) -> np.ndarray:
@@ -301,18 +303,28 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
         posture.root_offset_aa = posture.root_offset_aa + root * (eased / angle)
     solver = BodySolver(skeleton)
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
+    gesture_local = local.copy()  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
     for j, offset in offsets.items():
         sign = ELBOW_SIDES.get(j)
         scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]
         local[:, j] = local[:, j] @ _aa(scale * offset)
+        if j not in LAYERED_MICRO_JOINTS:
+            gesture_local[:, j] = local[:, j]
+    poses, gesture_poses = (finish_poses(m, solver.base[22], env, arms) for m in (local, gesture_local))
+    return AgentMotion(
+        poses=poses, trans=posture.trans.astype(np.float32), expressions=expressions,
+        vad=activity_frames(conv.words_of(AGENT), n, fps), user_vad=activity_frames(conv.words_of(USER), n, fps),
+        planted=posture.planted.astype(np.uint8), gesture_poses=gesture_poses,
+    )
+
+
+def finish_poses(local: np.ndarray, jaw_rest: np.ndarray, env: np.ndarray, arms: ArmTracks) -> np.ndarray:
+    """(T, 55, 3, 3) local rotations -> (T, 55, 3) float32 axis-angle within the soft joint limits, with the jaw
+    following the speech envelope ``env`` and the planned hand shapes."""
     poses = matrix_to_axis_angle(local)  # (T, 55, 3)
     for j, (knee, cap) in JOINT_SOFT_LIMITS_RAD.items():
         poses[:, j] = soft_limit_angle(poses[:, j], knee, cap)
-    poses[:, 22] = solver.base[22] + np.stack([JAW_OPEN_RAD * env, 0 * env, 0 * env], -1)
+    poses[:, 22] = jaw_rest + np.stack([JAW_OPEN_RAD * env, 0 * env, 0 * env], -1)
     poses[:, 23:25] = 0.0
     poses[:, 25:55] = blend_hands(arms.hand)
-    return AgentMotion(
-        poses=poses.astype(np.float32), trans=posture.trans.astype(np.float32), expressions=expressions,
-        vad=activity_frames(conv.words_of(AGENT), n, fps), user_vad=activity_frames(conv.words_of(USER), n, fps),
-        planted=posture.planted.astype(np.uint8),
-    )
+    return poses.astype(np.float32)

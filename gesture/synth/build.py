@@ -8,7 +8,8 @@ and barge-ins (gesture/synth/conversation.py), and the agent's procedural whole-
 
 - ``smplxflame_25/<id>.npz``: the AGENT's motion at 25 fps: ``poses`` (T, 165) axis-angle SMPL-X, ``trans``
   (T, 3), ``expressions`` (T, 100), ``betas`` (300,) zeros, ``mocap_frame_rate`` 25, plus ``vad`` (T,) uint8
-  (1 while the agent's voice is active: inside its words, gaps < 0.3 s bridged) and ``user_vad`` (T,) uint8;
+  (1 while the agent's voice is active: inside its words, gaps < 0.3 s bridged), ``user_vad`` (T,) uint8 and
+  ``gesture_poses`` (T, 165): ``poses`` without the micro-motion the agent adds at run time (what its codecs learn);
 - ``wave16k/<id>.wav``: the AGENT's own channel (16 kHz, 16-bit), as in BEAT2 where the wav is the
   gesturing speaker's voice and what the gesture LM is conditioned on; ``wave16k/<id>_user.wav`` is the
   user's channel and ``wave16k/<id>_mix.wav`` the conversation as heard in the room;
@@ -101,7 +102,7 @@ def write_session(root: Path, tid: str, conv: Conversation, motion: AgentMotion,
         root / MOTION_DIR / f"{tid}.npz",
         poses=motion.poses.reshape(n, -1), trans=motion.trans, expressions=motion.expressions,
         betas=np.zeros(NUM_BETAS, np.float32), mocap_frame_rate=np.int64(fps),
-        vad=motion.vad, user_vad=motion.user_vad,
+        vad=motion.vad, user_vad=motion.user_vad, gesture_poses=motion.gesture_poses.reshape(n, -1),
     )
     sr = conv.sample_rate_hz
     for suffix, pcm in (("", conv.channels[AGENT]), ("_user", conv.channels[USER]), ("_mix", conv.mix)):
