@@ -88,9 +88,11 @@ filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch
 {STEPS['lower']}, face {STEPS['face']} steps. The face codec has an expression MSE (weight
 {CODEC['expression_mse_weight']:g}) beside the reference's L1: with L1 alone it reconstructed a face that never blinks.
 {DECODER_TEXT}
-These codecs do not carry the small, speech-independent motion of the spine, neck, head, collars and wrists (a
-linear probe of the upper latent explains none of it); the default agent adds it after decoding with its
-micro-motion layer (`gesture.micro_motion`, `configs/default.yaml`).
+The synthetic sessions are read as their gesture layer (`gesture_poses`): the motion without the small,
+speech-independent micro-motion of the spine, neck, head, collars and wrists, which codecs of this size do not carry
+(a linear probe of an upper latent trained on the whole motion explained none of it). The default agent adds that
+micro-motion after decoding with its micro-motion layer (`gesture.micro_motion`, `configs/default.yaml`), from the
+same fitted model the generator uses.
 
 ## Metrics
 Reconstruction (offline encode -> decode with all levels) at the last step; MPJPE in mm over the 55 FK joints with
@@ -132,7 +134,7 @@ so `gesture.speaker` is its index.
 ## Data
 {lm_data}
 Tokenized by `python -m gesture.data.tokenize` (train split only): gesture tokens from the three shipped codecs'
-encoders, the agent channel's speech codes, a text token at each agent word's first step (the clip's words from
+encoders (of the synthetic sessions' gesture layer, `gesture_poses`, as the codecs were trained), the agent channel's speech codes, a text token at each agent word's first step (the clip's words from
 the local recogniser), voice activity per step.
 
 ## Config
