@@ -32,7 +32,7 @@ from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
-from gesture.micro_motion import MicroMotion, is_speaking
+from gesture.micro_motion import MicroMotion
 from gesture.nn.streaming import StreamingModule
 
 
@@ -121,7 +121,7 @@ class GestureGenerator:
             decoded = self.idle_gate.apply(decoded)
         poses, trans, expressions = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
         if self.micro_motion is not None:
-            poses, expressions = self.micro_motion.step(poses, expressions, is_speaking(agent_pcm))
+            poses, expressions = self.micro_motion.step(poses, expressions, agent_pcm)
             poses = poses.astype(np.float32)
         return GeneratedStep(tokens.numpy().astype(np.int32), poses, trans, expressions, va_prob, idle)
 

@@ -11,14 +11,14 @@ from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle
 from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.micro_motion import CausalSmoothNoise, calibrated_micro_motion, is_speaking
+from gesture.micro_motion import SPEAKING_RMS, CausalSmoothNoise, VoiceEnvelope, calibrated_micro_motion, frame_rms
 from gesture.process import build_micro_motion
 from gesture.synth.face import BLINK_PSI, BLINKS_PER_MINUTE
-from gesture.synth.tracks import smooth_noise
 from gesture.synth.tracks import smooth_noise
 
 torch.set_num_threads(1)
 JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)
+STEP_PCM = (0.1 * np.sin(0.3 * np.arange(1920))).astype(np.float32)  # one step (2 frames) of loud agent audio
 
 
 def _rest_poses(frames: int) -> np.ndarray:
@@ -28,7 +28,10 @@ def _rest_poses(frames: int) -> np.ndarray:
 
 
 def _moved(layer, poses: np.ndarray, speaking: bool = True) -> np.ndarray:
-    return layer.step(poses, np.zeros((len(poses), 100), np.float32), speaking)[0]
+    """The layer run step by step (2 frames each) on speech or silence."""
+    pcm = STEP_PCM if speaking else np.zeros_like(STEP_PCM)
+    expressions = np.zeros((2, 100), np.float32)
+    return np.concatenate([layer.step(poses[i:i + 2], expressions, pcm)[0] for i in range(0, len(poses), 2)])
 
 
 def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
@@ -45,9 +48,11 @@ def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
 def test_streaming_in_steps_equals_one_call_and_reset_replays():
     poses = _rest_poses(40)
     layer = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=3)
-    whole = _moved(layer, poses)
+    pcm = np.concatenate([STEP_PCM * (k % 3) for k in range(20)])  # speech and silence
+    whole = layer.step(poses, np.zeros((40, 100), np.float32), pcm)[0]
     layer.reset()
-    steps = np.concatenate([_moved(layer, poses[i:i + 2]) for i in range(0, 40, 2)])
+    steps = np.concatenate([layer.step(poses[i:i + 2], np.zeros((2, 100), np.float32), pcm[960 * i:960 * (i + 2)])[0]
+                            for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
     other = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=4), poses)
     assert not np.array_equal(whole, other)
@@ -68,14 +73,26 @@ def test_listening_is_calmer_than_speaking():
     speak = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses, speaking=True)
     listen = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses, speaking=False)
     ratio = np.abs(listen[:, list(JOINTS)]).mean() / np.abs(speak[:, list(JOINTS)]).mean()
-    assert 0.3 < ratio < 0.6  # the synthetic agent's listening scale is 0.45
+    # the synthetic agent's scales: listening 0.45 x silent envelope 0.75, against loud, steady speech's 1.25
+    assert 0.2 < ratio < 0.35
+
+
+def test_voice_envelope_divides_by_the_voiced_frames_95th_percentile():
+    rms = np.exp(np.random.default_rng(0).normal(np.log(0.05), 0.5, 20_000))  # voiced frames
+    envelope = VoiceEnvelope(MOTION_FPS)
+    values = [envelope.step(r) for r in rms]
+    assert envelope.loud_rms == pytest.approx(np.percentile(rms, 95), rel=0.1)
+    assert 0.4 < np.mean(values[-5000:]) < 0.7  # the data's envelope while speaking
+    for _ in range(3 * MOTION_FPS):  # a second of silence ...
+        quiet = envelope.step(0.0)
+    assert quiet < 0.01 and envelope.loud_rms == pytest.approx(np.percentile(rms, 95), rel=0.1)  # ... keeps the level
 
 
 def test_blinks_come_at_the_synthetic_rate_along_the_blink_pattern():
     frames = 25 * 600  # ten minutes
     layer = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0, blinks_per_minute=BLINKS_PER_MINUTE)
     expressions = np.zeros((frames, 100), np.float32)
-    _, blinked = layer.step(_rest_poses(frames), expressions, speaking=True)
+    _, blinked = layer.step(_rest_poses(frames), expressions, None)
     closure = blinked @ BLINK_PSI / (BLINK_PSI @ BLINK_PSI)  # (T,) back along the pattern
     np.testing.assert_allclose(blinked, closure[:, None] * BLINK_PSI[None], atol=1e-6)
     starts = np.flatnonzero((closure[1:] > 0.5) & (closure[:-1] <= 0.5))
@@ -85,9 +102,9 @@ def test_blinks_come_at_the_synthetic_rate_along_the_blink_pattern():
 
 
 def test_speaking_follows_the_idle_gates_silence_level():
-    assert not is_speaking(None) and not is_speaking(np.zeros(1920, np.float32))
-    assert not is_speaking(np.full(1920, 0.003, np.float32))
-    assert is_speaking(np.full(1920, 0.05, np.float32))
+    assert not frame_rms(None, 2).any() and not frame_rms(np.zeros(1920, np.float32), 2).any()
+    assert (frame_rms(np.full(1920, 0.003, np.float32), 2) < SPEAKING_RMS).all()
+    assert (frame_rms(np.full(1920, 0.05, np.float32), 2) > SPEAKING_RMS).all()
 
 
 def test_generator_applies_the_layer_after_decoding():
