@@ -8,7 +8,8 @@ Per step (MIBURI-FACTS sections 3 and 5): the temporal transformer gives level 0
 1..19, each sampled with temperature and top-p (the exact rule of `gesture.lm.sampling`), with classifier-free
 guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level. The optional
 idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history); the optional
-micro-motion layer (`gesture.micro_motion`, not in the reference) then moves the joints the small codecs hold still. Each codec
+micro-motion layer (`gesture.micro_motion`, not in the reference) then adds the micro-motion the codecs' training data
+(its gesture layer) leaves out. Each codec
 stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
 at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
 so this puts the feet near the floor.

@@ -1,7 +1,8 @@
 """Micro-motion layered on the decoded pose (not in the reference): the small, speech-independent motion of the
 torso, neck, head, collars and wrists that a real speaker never stops making.
 
-Why: the small CPU codecs carry gestures but drop this motion. A linear probe of the default upper codec's latent
+Why: the small CPU codecs carry gestures but drop this motion. A linear probe of an upper codec's latent (trained on
+the whole motion)
 explains none of the spine, neck, head and collar rotations (R^2 <= 0.05 on held-out synthetic sessions, against
 0.97 for the fingers) and 13-20 % of the wrists', and neither inverse-variance joint weights, standardised features
 nor warm starts changed that within 4000 steps; so the decoded agent held those joints still 3x as often as the

@@ -4,7 +4,7 @@
 # checkpoints/codecs/{upper,lower,face} and checkpoints/gesture_lm. The decoder stage freezes the encoders and
 # quantizers, so it never changes the LM tokens.
 #
-#   bash scripts/train_default.sh                 # the shipped run (about 2.5 hours of wall time on 2 cores)
+#   bash scripts/train_default.sh                 # the shipped run (about 1.5 hours of wall time on 2 cores)
 #   SESSIONS=2 CODEC_SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_REGIONS=upper DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
 #
 # Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists
