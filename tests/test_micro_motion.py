@@ -83,7 +83,7 @@ def test_voice_envelope_divides_by_the_voiced_frames_95th_percentile():
     values = [envelope.step(r) for r in rms]
     assert envelope.loud_rms == pytest.approx(np.percentile(rms, 95), rel=0.1)
     assert 0.4 < np.mean(values[-5000:]) < 0.7  # the data's envelope while speaking
-    for _ in range(3 * MOTION_FPS):  # a second of silence ...
+    for _ in range(3 * MOTION_FPS):  # three seconds of silence ...
         quiet = envelope.step(0.0)
     assert quiet < 0.01 and envelope.loud_rms == pytest.approx(np.percentile(rms, 95), rel=0.1)  # ... keeps the level
 
