@@ -34,7 +34,7 @@ from gesture.synth.agent import (MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S, M
                                  MICRO_GATE_MAX, MICRO_LISTENING, MICRO_PARTS)
 from gesture.synth.calibration import load_calibration
 from gesture.synth.face import BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S
-from gesture.synth.tracks import bump
+from gesture.synth.tracks import NOISE_TRUNCATE_SIGMAS, bump, noise_sigma_frames
 
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
 LIMIT_STDS = 2.5  # each offset is softly limited (tanh) to this many fitted stds per axis: no wrist folds over
@@ -45,11 +45,10 @@ LOUD_RATE = 0.02  # ... tracked causally: it moves by about this fraction per vo
 
 
 def gaussian_kernel(cutoff_hz: float, fps: float) -> np.ndarray:
-    """(L,) the synthetic data's smoothing kernel for noise of `cutoff_hz` (gesture.synth.tracks.smooth_noise:
-    sigma = fps / (2 pi cutoff), truncated at 4 sigma), scaled to unit energy so white noise comes out at unit
-    variance."""
-    sigma = fps / (2 * np.pi * cutoff_hz)
-    radius = int(4 * sigma + 0.5)
+    """(L,) the synthetic data's smoothing kernel for noise of `cutoff_hz` (gesture.synth.tracks.smooth_noise), scaled
+    to unit energy so white noise comes out at unit variance."""
+    sigma = noise_sigma_frames(cutoff_hz, fps)
+    radius = int(NOISE_TRUNCATE_SIGMAS * sigma + 0.5)  # as scipy's gaussian_filter1d
     kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
     return kernel / np.sqrt((kernel**2).sum())
 
@@ -71,12 +70,12 @@ class CausalSmoothNoise:
 
     def __init__(self, cutoff_hz: Sequence[float], fps: float) -> None:
         kernels = [gaussian_kernel(float(hz), fps) for hz in cutoff_hz]
-        self.taps = max(len(k) for k in kernels)
-        self.kernel = np.zeros((self.taps, len(kernels)))  # (L, C): tap k weighs the white noise of k frames ago
+        self.kernel = np.zeros((max(len(k) for k in kernels), len(kernels)))  # (L, C): tap k weighs noise k frames old
         for c, k in enumerate(kernels):
             self.kernel[: len(k), c] = k
         self.ring = np.zeros_like(self.kernel)  # (L, C) white noise, the newest at `self.head`
         self.head = 0
+        self.lags = np.arange(len(self.kernel))
 
     @property
     def channels(self) -> int:
@@ -88,10 +87,10 @@ class CausalSmoothNoise:
         self.head = 0
 
     def step(self, white: np.ndarray) -> np.ndarray:
-        self.head = (self.head + 1) % self.taps
+        self.head = (self.head + 1) % len(self.ring)
         self.ring[self.head] = white
-        ages = (self.head - np.arange(self.taps)) % self.taps  # ring row of the noise k frames ago
-        return (self.kernel * self.ring[ages]).sum(0)
+        rows = (self.head - self.lags) % len(self.ring)  # (L,) the ring row of the noise k frames old
+        return (self.kernel * self.ring[rows]).sum(0)
 
 
 class VoiceEnvelope:

@@ -86,7 +86,7 @@ face {size['face']:.1f} MB.
 filters, 2/2/1 transformer layers, AdamW lr {CODEC['lr']:g}, batch {CODEC['batch_size']} windows of up to
 {CODEC['window_frames']} frames, StepLR ×0.8 every {CODEC['lr_step_every']} steps; upper {STEPS['upper']}, lower
 {STEPS['lower']}, face {STEPS['face']} steps. The FK joint-position MSE weighs
-{CODEC.get('joint_position_weight', 10.0):g} (the reference's 10). The face codec has an expression MSE (weight
+{CODEC['joint_position_weight']:g} (the reference's 10). The face codec has an expression MSE (weight
 {CODEC['expression_mse_weight']:g}) beside the reference's L1: with L1 alone it reconstructed a face that never blinks.
 {DECODER_TEXT}
 The synthetic sessions are read as their gesture layer (`gesture_poses`): the motion without the small,

@@ -61,11 +61,20 @@ class KeyTrack:
         return values[i] + (values[j] - values[i]) * w
 
 
+NOISE_TRUNCATE_SIGMAS = 4.0  # scipy's gaussian_filter1d default: the kernel ends this many sigmas out
+
+
+def noise_sigma_frames(cutoff_hz: float, fps: float) -> float:
+    """The Gaussian smoothing (sigma, in frames) of noise with ``cutoff_hz``."""
+    return fps / (2 * np.pi * cutoff_hz)
+
+
 def smooth_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1) -> np.ndarray:
     """(n_frames, dim) Gaussian-filtered white noise with unit standard deviation per column."""
-    sigma = fps / (2 * np.pi * cutoff_hz)
+    sigma = noise_sigma_frames(cutoff_hz, fps)
     pad = int(4 * sigma) + 1
-    x = gaussian_filter1d(rng.standard_normal((n_frames + 2 * pad, dim)), sigma, axis=0, mode="wrap")[pad:-pad]
+    x = gaussian_filter1d(rng.standard_normal((n_frames + 2 * pad, dim)), sigma, axis=0, mode="wrap",
+                          truncate=NOISE_TRUNCATE_SIGMAS)[pad:-pad]
     return x / np.maximum(x.std(0, keepdims=True), 1e-9)
 
 
