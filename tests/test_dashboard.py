@@ -403,7 +403,7 @@ def test_a_live_run_shows_in_headless_chromium(tmp_path):
     proc = launch(["--replay", str(wav), "--set", "dashboard.port=0", "--set", "dashboard.wait_for_start=true"],
                   report)
     (state, later, stopped_s, final_phase), code, output = _drive_page(proc, report, lambda url: _watch_page(url, proc),
-                                                                       finish_timeout_s=30)
+                                                                       finish_timeout_s=90)
     assert code == 0, output
     assert stopped_s < 10, "Stop ended the run"  # the recording lasts 30 s
     assert final_phase == "stopped" and "dashboard: stopped" in (report / "dashboard.log").read_text()
@@ -533,7 +533,7 @@ def test_the_pages_microphone_is_the_users_voice(tmp_path):
             await page.evaluate("document.getElementById('stop').click()")
             return {"silent": silent, "loud": loud, "micinfo": counters}
 
-    seen, code, output = _drive_page(proc, report, talk, finish_timeout_s=30)
+    seen, code, output = _drive_page(proc, report, talk, finish_timeout_s=90)
     assert code == 0, output
     assert seen["silent"] == -90.0  # before the microphone: the source delivers silence on time
     assert seen["loud"] > -45 and seen["micinfo"] == ""
