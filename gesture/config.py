@@ -48,6 +48,29 @@ class MicroMotionConfig:
             raise ConfigError(f"gesture.micro_motion.blinks_per_minute: must be in [0, 75), got {self.blinks_per_minute}")
 
 
+ARM_JOINTS = (18, 19, 20, 21)  # elbows and wrists
+
+
+@dataclass(frozen=True)
+class StabilizerConfig:
+    """Speed-adaptive smoothing of the output arms (gesture.stabilizer; not in the reference, off by default)."""
+
+    enabled: bool = False
+    joints: tuple[int, ...] = ARM_JOINTS
+    min_cutoff_hz: float = 0.7  # the cutoff while a joint is at rest ...
+    speed_gain_hz: float = 0.3  # ... rising this much per rad/s of its speed
+    speed_cutoff_hz: float = 1.0  # the speed estimate's own smoothing
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise ConfigError("gesture.stabilizer.joints: must name at least one joint")
+        for name in ("min_cutoff_hz", "speed_cutoff_hz"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"gesture.stabilizer.{name}: must be > 0, got {getattr(self, name)}")
+        if self.speed_gain_hz < 0:
+            raise ConfigError(f"gesture.stabilizer.speed_gain_hz: must be >= 0, got {self.speed_gain_hz}")
+
+
 @dataclass(frozen=True)
 class GestureConfig:
     """The `gesture:` section: checkpoints, sampling, classifier-free guidance, idle gate, speaker."""
@@ -70,6 +93,7 @@ class GestureConfig:
     dialogue_spec: Optional[ConditionSpec] = None  # checked against the LM checkpoint's spec at start-up
     idle: IdleGateConfig = field(default_factory=IdleGateConfig)
     micro_motion: MicroMotionConfig = field(default_factory=MicroMotionConfig)
+    stabilizer: StabilizerConfig = field(default_factory=StabilizerConfig)
 
     def __post_init__(self) -> None:
         if self.temperature <= 0:

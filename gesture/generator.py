@@ -9,7 +9,8 @@ Per step (MIBURI-FACTS sections 3 and 5): the temporal transformer gives level 0
 guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level. The optional
 idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history); the optional
 micro-motion layer (`gesture.micro_motion`, not in the reference) then adds the micro-motion the codecs' training data
-(its gesture layer) leaves out. Each codec
+(its gesture layer) leaves out, and the optional stabilizer (`gesture.stabilizer`, not in the reference either)
+smooths the arms' slow drift so that they hold still between strokes. Each codec
 stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
 at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
 so this puts the feet near the floor.
@@ -35,6 +36,7 @@ from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
 from gesture.micro_motion import MicroMotion
 from gesture.nn.streaming import StreamingModule
+from gesture.stabilizer import ArmStabilizer
 
 
 @dataclass
@@ -57,7 +59,7 @@ class GestureGenerator:
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
                  seed: int = 0, dtype: str = "float32", idle_gate: Optional[IdleGate] = None,
-                 micro_motion: Optional[MicroMotion] = None,
+                 micro_motion: Optional[MicroMotion] = None, stabilizer: Optional[ArmStabilizer] = None,
                  initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
                  engine: Optional[StreamingModule] = None) -> None:
         self.sizes = lm.sizes
@@ -77,6 +79,7 @@ class GestureGenerator:
         self.unguided = set(self.sizes.lower_levels)
         self.idle_gate = idle_gate
         self.micro_motion = micro_motion
+        self.stabilizer = stabilizer
         self.initial_translation = np.asarray(initial_translation, np.float64)
         self.seed = seed
         self.generator = torch.Generator()
@@ -91,6 +94,8 @@ class GestureGenerator:
             self.idle_gate.reset()
         if self.micro_motion is not None:
             self.micro_motion.reset()
+        if self.stabilizer is not None:
+            self.stabilizer.reset()
         self.generator.manual_seed(self.seed)
         self.history = torch.full((self.sizes.n_levels,), -1, dtype=torch.long)
         self.carry = self.initial_translation.copy()
@@ -123,7 +128,9 @@ class GestureGenerator:
         poses, trans, expressions = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
         if self.micro_motion is not None:
             poses, expressions = self.micro_motion.step(poses, expressions, agent_pcm)
-            poses = poses.astype(np.float32)
+        if self.stabilizer is not None:
+            poses = self.stabilizer.step(poses)
+        poses = poses.astype(np.float32)
         return GeneratedStep(tokens.numpy().astype(np.int32), poses, trans, expressions, va_prob, idle)
 
     def _check_condition(self, text_token: int, audio_codes) -> torch.Tensor:

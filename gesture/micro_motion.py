@@ -30,8 +30,8 @@ import torch
 
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from gesture.config import IdleGateConfig
-from gesture.synth.agent import (MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S, MICRO_GATE_HZ, MICRO_GATE_LOG_STD,
-                                 MICRO_GATE_MAX, MICRO_LISTENING, MICRO_PARTS)
+from gesture.synth.agent import (ELBOW_GATE_LOG_STD, ELBOW_SIDES, MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
+                                 MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, micro_gate)
 from gesture.synth.calibration import load_calibration
 from gesture.synth.face import BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S
 from gesture.synth.tracks import NOISE_TRUNCATE_SIGMAS, bump, noise_sigma_frames
@@ -157,6 +157,8 @@ class MicroMotion:
         self.gate = CausalSmoothNoise(np.full(len(MICRO_PARTS), MICRO_GATE_HZ), fps)  # one per body part
         part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
         self.part = np.array([part_of.get(j, 0) for j in self.joints])  # (J,)
+        self.elbows = [k for k, j in enumerate(self.joints) if j in ELBOW_SIDES]  # rows with their own gate, as in the data
+        self.elbow_gate = CausalSmoothNoise(np.full(len(self.elbows), MICRO_GATE_HZ), fps) if self.elbows else None
         self.listening_scale = listening_scale
         self.speaking_alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
         self.envelope = VoiceEnvelope(fps)
@@ -167,6 +169,8 @@ class MicroMotion:
         self.rng = np.random.default_rng(self.seed)
         self.noise.reset(self.rng)
         self.gate.reset(self.rng)
+        if self.elbow_gate is not None:
+            self.elbow_gate.reset(self.rng)
         self.speaking = 0.0
         self.envelope.reset()
         self.frame = 0
@@ -180,10 +184,12 @@ class MicroMotion:
         self.speaking = self.speaking_alpha * self.speaking + (1 - self.speaking_alpha) * float(speaking)
         turn = self.listening_scale + (1 - self.listening_scale) * self.speaking
         level = turn * (1 + MICRO_ENVELOPE_GAIN * (self.envelope.step(rms) - 0.5))
-        log_gate = MICRO_GATE_LOG_STD * self.gate.step(self.rng.standard_normal(self.gate.channels))  # (parts,)
-        gate = np.minimum(np.exp(log_gate - MICRO_GATE_LOG_STD**2), MICRO_GATE_MAX)  # unit mean square, capped
+        gate = micro_gate(self.gate.step(self.rng.standard_normal(self.gate.channels)))[self.part]  # (J,)
         noise = self.noise.step(self.rng.standard_normal(self.noise.channels)).reshape(-1, 3)  # (J, 3)
-        offset = noise * self.std * (level * gate[self.part])[:, None]
+        if self.elbow_gate is not None:
+            own = self.elbow_gate.step(self.rng.standard_normal(self.elbow_gate.channels))  # (elbows,)
+            gate[self.elbows] = micro_gate(own, ELBOW_GATE_LOG_STD)
+        offset = noise * self.std * (level * gate)[:, None]
         limit = LIMIT_STDS * self.std
         return limit * np.tanh(offset / np.maximum(limit, 1e-12))
 

@@ -24,13 +24,14 @@ from core.config import ConfigError
 from core.messages import DialogueStep, GestureStep, Message
 from core.component import RunContext
 from core.timing import MOTION_FPS, STEP_SAMPLES
-from gesture.config import GestureConfig, MicroMotionConfig
+from gesture.config import GestureConfig, MicroMotionConfig, StabilizerConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
 from gesture.micro_motion import MicroMotion, calibrated_micro_motion
 from gesture.nn.weights import UnsupportedFormError, require_fast_form
+from gesture.stabilizer import ArmStabilizer
 
 log = logging.getLogger(__name__)
 STATS_FILE = "gesture.json"
@@ -118,6 +119,7 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
     return GestureGenerator(lm, codecs, temperature=cfg.temperature, top_p_temporal=cfg.top_p_temporal,
                             top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
                             dtype=cfg.dtype, idle_gate=idle, micro_motion=build_micro_motion(cfg.micro_motion, seed),
+                            stabilizer=build_stabilizer(cfg.stabilizer),
                             initial_translation=cfg.initial_translation)
 
 
@@ -129,6 +131,16 @@ def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotio
         return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, cfg.blinks_per_minute)
     except ValueError as error:
         raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
+
+
+def build_stabilizer(cfg: StabilizerConfig) -> Optional[ArmStabilizer]:
+    """The `gesture.stabilizer` smoothing of the output arms, or None when it is off."""
+    if not cfg.enabled:
+        return None
+    try:
+        return ArmStabilizer(cfg.joints, MOTION_FPS, cfg.min_cutoff_hz, cfg.speed_gain_hz, cfg.speed_cutoff_hz)
+    except ValueError as error:
+        raise ConfigError(f"gesture.stabilizer: {error}") from None
 
 
 def warm_up(generator: GestureGenerator, steps: int) -> None:

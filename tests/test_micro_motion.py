@@ -45,16 +45,17 @@ def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
     np.testing.assert_allclose(speed(causal), speed(gaussian), rtol=0.1)
 
 
-def test_streaming_in_steps_equals_one_call_and_reset_replays():
+@pytest.mark.parametrize("joints", [JOINTS, JOINTS + (18, 19)], ids=["layered", "with elbows (own gates)"])
+def test_streaming_in_steps_equals_one_call_and_reset_replays(joints):
     poses = _rest_poses(40)
-    layer = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=3)
+    layer = calibrated_micro_motion(joints, MOTION_FPS, seed=3)
     pcm = np.concatenate([STEP_PCM * (k % 3) for k in range(20)])  # speech and silence
     whole = layer.step(poses, np.zeros((40, 100), np.float32), pcm)[0]
     layer.reset()
     steps = np.concatenate([layer.step(poses[i:i + 2], np.zeros((2, 100), np.float32), pcm[960 * i:960 * (i + 2)])[0]
                             for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
-    other = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=4), poses)
+    other = _moved(calibrated_micro_motion(joints, MOTION_FPS, seed=4), poses)
     assert not np.array_equal(whole, other)
 
 

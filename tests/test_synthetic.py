@@ -14,13 +14,15 @@ from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
-from gesture.synth.agent import soft_limit_angle, synthesize_agent_motion
+from gesture.synth.agent import (ELBOW_GATE_LOG_STD, MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_PARTS,
+                                 gate_rms, micro_gate, micro_motion, soft_limit_angle, synthesize_agent_motion)
 from gesture.synth.build import generate_dataset, generate_session, main as synthetic_main
 from gesture.config import MicroMotionConfig
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig, build_synth_config, load_synth_config
 from gesture.synth.conversation import AGENT, USER, build_conversation
 from gesture.synth.face import FACE_PATTERNS
 from gesture.synth.ik import TwoBoneChain
+from gesture.synth.tracks import smooth_noise
 from tests.data.beat2_clip import CLIP_NPZ, needs_clip
 
 torch.set_num_threads(1)
@@ -287,12 +289,28 @@ def test_stored_micro_motion_covers_the_torso_head_and_arms():
         assert std.shape == (3,) and (std > 0).all() and (std < 0.6).all() and 0.1 < hz <= 3.0
 
 
+def test_elbow_gates_are_burstier_at_the_same_rms_and_leave_the_other_joints_draws_alone():
+    z = np.random.default_rng(0).standard_normal(400_000)
+    arm, elbow = micro_gate(z), micro_gate(z, ELBOW_GATE_LOG_STD)
+    rms = gate_rms(MICRO_GATE_LOG_STD, MICRO_GATE_MAX)
+    np.testing.assert_allclose([np.sqrt((arm**2).mean()), np.sqrt((elbow**2).mean())], [rms, rms], rtol=0.01)
+    assert (elbow < 0.25).mean() > 1.5 * (arm < 0.25).mean()  # more time near still
+    params = {j: (np.full(3, 0.1), 1.0) for j in (3, 12, 18, 19, 20)}
+    got = micro_motion(np.random.default_rng(7), 200, 25.0, params, np.ones(200))
+    rng = np.random.default_rng(7)  # the draws before the elbows had their own gates: parts' gates, then each joint
+    parts = micro_gate(smooth_noise(rng, 200, 25.0, MICRO_GATE_HZ, len(MICRO_PARTS)))  # (T, parts)
+    noise = {j: smooth_noise(rng, 200, 25.0, 1.0, 3) * 0.1 for j in sorted(params)}
+    for j, part in ((3, 0), (12, 0), (20, 1)):
+        np.testing.assert_allclose(got[j], noise[j] * parts[:, part, None], atol=1e-12)
+
+
 @pytest.mark.slow
 @needs_clip
 def test_agent_driven_by_the_clip_speech_matches_its_statistics():
     """Issue 18's calibration goal, on the real clip's own speech and word timings (mean of three seeds): every
     speed, stillness and diversity ratio of wrists, elbows, neck+head and spine within 0.8-1.25; L1div within 15 %
-    (measured: 0.880 / 1.013 / 0.930 of the real clip's for seeds 0 / 1 / 2, mean 0.941; seeds 3-5: mean 0.935)."""
+    (measured: 0.866 / 1.012 / 0.907 of the real clip's for seeds 0 / 1 / 2, mean 0.928; seeds 3-5: mean 0.909;
+    every group ratio 0.86-1.17 on seeds 0-2 and 0.83-1.22 on seeds 3-5)."""
     from gesture.eval import metrics as M
     from gesture.eval import realism as R
     from gesture.synth.recording import motion_for_recording, recognised_words
