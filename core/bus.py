@@ -117,10 +117,12 @@ class Subscriber:
 
     Control messages go to their own queue, which is never dropped. A publisher's messages arrive in the
     order it sent them, so when its EOS is taken from `controls`, all its data is already in `queue`.
+    In live mode at most `live_queue` messages wait, dropping the oldest; messages of `keep_topics` (small ones
+    whose every instance matters, such as the dialogue's words) are neither counted nor dropped.
     """
 
     def __init__(self, ctx: zmq.Context, addresses: Iterable[str], topics: Iterable[str], *,
-                 live_queue: int | None, serializer: Serializer | None = None):
+                 live_queue: int | None, keep_topics: Iterable[str] = (), serializer: Serializer | None = None):
         self.serializer = serializer or MsgpackSerializer()
         self.socket = ctx.socket(zmq.SUB)
         self.socket.setsockopt(zmq.RCVHWM, LIVE_HWM if live_queue else 0)
@@ -132,6 +134,7 @@ class Subscriber:
         self.queue: collections.deque[Message] = collections.deque()  # data, in arrival order
         self.controls: collections.deque[Control] = collections.deque()  # never dropped
         self.live_queue = live_queue
+        self.keep_topics = frozenset(keep_topics)
         self.dropped = 0  # dropped here, oldest first, because the consumer fell behind (live mode)
         self.lost = 0  # never arrived: gaps in the publishers' sequence numbers
         self.decode_errors = 0
@@ -170,10 +173,12 @@ class Subscriber:
         if isinstance(msg, Control):
             self.controls.append(msg)
             return
-        if self.live_queue and len(self.queue) >= self.live_queue:
-            self.queue.popleft()
-            self.dropped += 1
         self.queue.append(msg)
+        if self.live_queue and msg.topic not in self.keep_topics:
+            droppable = [i for i, m in enumerate(self.queue) if m.topic not in self.keep_topics]
+            if len(droppable) > self.live_queue:
+                del self.queue[droppable[0]]
+                self.dropped += 1
 
     def close(self) -> None:
         self.socket.close()

@@ -56,6 +56,22 @@ def test_live_queue_drops_the_oldest_and_counts(pair):
     assert sub.dropped == 6 and sub.lost == 0
 
 
+def test_kept_topics_are_never_dropped(tmp_path):
+    ctx = zmq.Context.instance()
+    address = stage_address("io", BusConfig(), tmp_path)
+    pub = Publisher(ctx, address, "io", lossless=False)
+    sub = Subscriber(ctx, [address], ["audio.user", "metrics", "control"], live_queue=3, keep_topics=["metrics"])
+    _join(pub, sub)
+    for step in range(6):
+        pub.send(block(step))
+        pub.send(Metrics(step=step))
+    _drain(sub, 12)
+    assert [(m.topic, m.step) for m in sub.queue] == [("metrics", 0), ("metrics", 1), ("metrics", 2),
+                                                      ("audio.user", 3), ("metrics", 3), ("audio.user", 4),
+                                                      ("metrics", 4), ("audio.user", 5), ("metrics", 5)]
+    assert sub.dropped == 3
+
+
 def test_offline_is_lossless(pair):
     pub, sub = pair(live_queue=None)
     for step in range(500):

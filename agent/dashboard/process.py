@@ -1,4 +1,4 @@
-"""The dashboard process: bus subscriber (live, drop-oldest) + aiohttp server, in one asyncio loop.
+"""The dashboard process: bus subscriber (live, drops the oldest frames) + aiohttp server, in one asyncio loop.
 
 It listens to every stage's `control` (heartbeats with counters, EOS, PONG), the dialogue's `dialogue.step`,
 the renderer's `render.frame` and the sink's `metrics`, turns them into page events (agent.dashboard.events)
@@ -33,7 +33,8 @@ log = logging.getLogger("dashboard")
 
 DASHBOARD = "dashboard"
 TOPICS = ("control", "metrics", "dialogue.step", "render.frame")
-LIVE_QUEUE_MESSAGES = 64  # data messages waiting here; older ones are dropped and counted
+LIVE_QUEUE_MESSAGES = 64  # data messages waiting here; past it the oldest frames are dropped and counted ...
+KEPT_TOPICS = ("metrics", "dialogue.step")  # ... never the words, speech and latencies (small, one per step)
 POLL_S = 0.01
 COUNTERS_EVERY_S = 0.5
 URL_FILE = "dashboard.url"
@@ -64,7 +65,7 @@ class DashboardBridge:
         ctx = zmq.Context.instance()
         self.pub = Publisher(ctx, stage_address(DASHBOARD, app.bus, launch.ipc_dir), DASHBOARD, lossless=True)
         addresses = [stage_address(s, app.bus, launch.ipc_dir) for s in (*self.pipeline, SUPERVISOR)]
-        self.sub = Subscriber(ctx, addresses, TOPICS, live_queue=LIVE_QUEUE_MESSAGES)
+        self.sub = Subscriber(ctx, addresses, TOPICS, live_queue=LIVE_QUEUE_MESSAGES, keep_topics=KEPT_TOPICS)
         self.transcript = Transcript(self.cfg.max_turns)
         self.latency = LatencyMeter(self.pipeline, self.cfg.history_steps)
         self.run_state = RunState(self.pipeline, self.pipeline[-1], self.cfg.wait_for_start)
