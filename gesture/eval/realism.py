@@ -8,8 +8,8 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 ``--motion`` reuses one) and compared with the real motion of that clip. Two references are measured the same
 way, so the report is seen to discriminate:
 
-- ``generated_without_micro_motion``: the same agent with ``gesture.micro_motion.enabled=false`` (what its codecs
-  alone carry; not measured with ``--motion``);
+- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.micro_motion.enabled=false``,
+  ``gesture.stabilizer.enabled=false``): what its LM and codecs alone carry; not measured with ``--motion``;
 - ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
 - ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``): the ceiling of what
@@ -465,10 +465,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         synthetic = (cut(load_clip(args.synthetic), n) if args.synthetic
                      else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json")))
         motions = {"generated": cut(generated, n)}
-        if not args.motion:  # the same agent without its micro-motion layer: what the codecs alone carry
-            plain_npz = speak_clip(wav, args.seed, out / "agent_without_micro_motion",
-                                   args.set + ["gesture.micro_motion.enabled=false"])
-            motions["generated_without_micro_motion"] = cut(load_clip(plain_npz), n)
+        if not args.motion:  # the same agent without its runtime layers: what the LM and codecs alone carry
+            plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only",
+                                   args.set + ["gesture.micro_motion.enabled=false", "gesture.stabilizer.enabled=false"])
+            motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
         motions |= {"synthetic_gt": synthetic,
                    "baseline": baseline_reference(real, args.seed),
                    "real_through_codecs": cut(through_codecs(real, Path(args.codecs)), n)}

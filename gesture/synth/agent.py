@@ -44,7 +44,7 @@ MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two
 MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40 rad per frame at 25 fps)
 # Each elbow has its own, burstier gate (its log's std): with the arms' 0.7, the synthetic agent on the real clip's
 # speech held its elbows still (< 0.2 rad/s) in 0.73x the real speaker's share of frames (median of 8 seeds, 0.49x at
-# worst); with 0.85, in 1.01x (0.64x-1.96x), at 0.88x his median elbow speed.
+# worst); with 0.85, in 1.09x (0.55x-2.68x), at 0.95x his median elbow speed (gate scaled to the same RMS).
 ELBOW_GATE_LOG_STD = 0.85
 MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
 ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
