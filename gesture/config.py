@@ -58,7 +58,7 @@ class StabilizerConfig:
     enabled: bool = False
     joints: tuple[int, ...] = ARM_JOINTS
     # Per joint of `joints`, the cutoff while it is at rest (elbows, wrists: each group's still fraction matched the
-    # ground truth's on validation sessions, synthetic seed 1) ...
+    # ground truth's on validation sessions, synthetic seed 1, sampled without a hold bias) ...
     min_cutoff_hz: tuple[float, ...] = (0.3, 0.3, 2.0, 2.0)
     speed_gain_hz: float = 0.3  # ... rising this much per rad/s of its speed
     speed_cutoff_hz: float = 1.0  # the speed estimate's own smoothing
@@ -85,6 +85,9 @@ class GestureConfig:
     top_p_temporal: float = 0.8
     top_p_depth: float = 0.95
     cfg_scale: float = 1.3  # guided = null + c * (cond - null); 1.0 switches guidance off
+    # added to the logit of the previous step's token at each of `hold_levels` (not in the reference; 0: off)
+    hold_bias: float = 0.0
+    hold_levels: tuple[int, ...] = ()
     speaker: int = 3
     # weights of the step path (LM, codec decoders): "float32" is exact to training; "bfloat16" (codecs float16)
     # and "int8" (per-row int8 weights everywhere, the fastest; see bench.gesture_step) trade a little precision
@@ -107,6 +110,10 @@ class GestureConfig:
                 raise ConfigError(f"gesture.{name}: must be in (0, 1], got {getattr(self, name)}")
         if self.cfg_scale < 0:
             raise ConfigError(f"gesture.cfg_scale: must be >= 0, got {self.cfg_scale}")
+        if self.hold_bias < 0:
+            raise ConfigError(f"gesture.hold_bias: must be >= 0, got {self.hold_bias}")
+        if any(level < 0 for level in self.hold_levels):
+            raise ConfigError(f"gesture.hold_levels: must be token levels >= 0, got {list(self.hold_levels)}")
         if self.speaker < 0:
             raise ConfigError(f"gesture.speaker: must be >= 0, got {self.speaker}")
         if self.warmup_steps < 0:

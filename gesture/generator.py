@@ -6,7 +6,8 @@
 
 Per step (MIBURI-FACTS sections 3 and 5): the temporal transformer gives level 0, the depth transformer levels
 1..19, each sampled with temperature and top-p (the exact rule of `gesture.lm.sampling`), with classifier-free
-guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level. The optional
+guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level; an optional
+hold bias (not in the reference) raises the logit of the previous step's token at chosen levels. The optional
 idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history); the optional
 micro-motion layer (`gesture.micro_motion`, not in the reference) then adds the micro-motion the codecs' training data
 (its gesture layer) leaves out, and the optional stabilizer (`gesture.stabilizer`, not in the reference either)
@@ -58,7 +59,8 @@ class GestureGenerator:
 
     def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
-                 seed: int = 0, dtype: str = "float32", idle_gate: Optional[IdleGate] = None,
+                 seed: int = 0, dtype: str = "float32", hold_bias: float = 0.0, hold_levels: tuple[int, ...] = (),
+                 idle_gate: Optional[IdleGate] = None,
                  micro_motion: Optional[MicroMotion] = None, stabilizer: Optional[ArmStabilizer] = None,
                  initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
                  engine: Optional[StreamingModule] = None) -> None:
@@ -68,6 +70,7 @@ class GestureGenerator:
         _check_codecs(lm, codecs, self.level_slices)
         self.temperature, self.top_p_temporal, self.top_p_depth = temperature, top_p_temporal, top_p_depth
         self.cfg_scale = cfg_scale
+        self.hold_bias, self.hold_levels = hold_bias, _check_hold_levels(hold_levels, self.sizes.n_levels)
         guided = cfg_scale != 1.0
         if dtype not in CODEC_FORMS:
             raise ValueError(f"dtype: must be one of {', '.join(CODEC_FORMS)}, got {dtype!r}")
@@ -150,7 +153,11 @@ class GestureGenerator:
         return 1.0 if level in self.unguided else self.cfg_scale
 
     def _sample(self, logits: torch.Tensor, level: int) -> int:
-        """(V,) guided logits of `level` (a tensor of our own) -> a token; pad masked."""
+        """(V,) guided logits of `level` (a tensor of our own) -> a token; pad masked, the previous step's token of a
+        hold level favoured by `hold_bias`."""
+        previous = int(self.history[level])
+        if level in self.hold_levels and previous >= 0:
+            logits[previous] += self.hold_bias
         top_p = self.top_p_temporal if level == 0 else self.top_p_depth
         return sample_top_p(mask_pad(logits, self.sizes.pad_token), self.temperature, top_p, self.generator)
 
@@ -192,6 +199,12 @@ def _level_slices(lm: GestureLM) -> dict[str, slice]:
     s = lm.sizes
     return {"upper": slice(0, s.n_upper), "lower": slice(s.n_upper, s.n_upper + s.n_lower),
             "face": slice(s.n_upper + s.n_lower, s.n_levels)}
+
+
+def _check_hold_levels(levels: tuple[int, ...], n_levels: int) -> frozenset[int]:
+    if any(not 0 <= level < n_levels for level in levels):
+        raise ValueError(f"hold_levels: must be token levels in [0, {n_levels - 1}], got {list(levels)}")
+    return frozenset(levels)
 
 
 def _check_codecs(lm: GestureLM, codecs: Mapping[str, GestureCodec], slices: dict[str, slice]) -> None:

@@ -86,6 +86,15 @@ def test_cfg_guides_every_level_but_the_lower_body():
     assert 0 <= logits < 16  # pad (16) masked
 
 
+def test_hold_bias_repeats_the_previous_token_of_its_levels_only():
+    conditions = _conditions(12)
+    free = np.stack([out.tokens for out in _run(_generator(seed=3), conditions)])  # (T, K)
+    held = np.stack([out.tokens for out in _run(_generator(seed=3, hold_bias=1e4, hold_levels=(1, 2)), conditions)])
+    assert np.array_equal(held[0], free[0])  # no previous step: nothing to favour
+    assert (held[1:, 1:3] == held[:1, 1:3]).all()  # held from then on
+    assert not (free[1:, 1:3] == free[:1, 1:3]).all()
+
+
 def test_translation_integrates_the_decoded_root_velocity():
     gen = _generator(initial_translation=(0.0, 1.3, 0.0))
     out = gen.step(1, np.zeros(8, int))
@@ -136,6 +145,8 @@ def test_bad_inputs_raise_clear_errors():
         gen.step(40, np.zeros(8, int))
     with pytest.raises(ValueError, match="audio_codes: must be in"):
         gen.step(1, np.full(8, 12))
+    with pytest.raises(ValueError, match="hold_levels"):
+        _generator(hold_levels=(20,))
     codecs = tiny_codecs(card=32)
     with pytest.raises(ValueError, match="LM card"):
         GestureGenerator(tiny_lm(), codecs)

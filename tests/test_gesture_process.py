@@ -92,6 +92,10 @@ def test_missing_checkpoints_are_config_errors(checkpoints, tmp_path):
 def test_gesture_config_validates_options():
     with pytest.raises(ConfigError, match="gesture.top_p_depth"):
         GestureConfig(top_p_depth=1.5)
+    with pytest.raises(ConfigError, match="gesture.hold_bias: must be >= 0"):
+        GestureConfig(hold_bias=-1.0)
+    with pytest.raises(ConfigError, match="gesture.hold_levels"):
+        GestureConfig(hold_levels=(-1,))
     with pytest.raises(ConfigError, match="gesture.idle.slices_dir"):
         from gesture.config import IdleGateConfig
         IdleGateConfig(enabled=True)
