@@ -155,8 +155,7 @@ class GestureGenerator:
     def _sample(self, logits: torch.Tensor, level: int) -> int:
         """(V,) guided logits of `level` (a tensor of our own) -> a token; pad masked, the previous step's token of a
         hold level favoured by `hold_bias`."""
-        previous = int(self.history[level])
-        if level in self.hold_levels and previous >= 0:
+        if level in self.hold_levels and (previous := int(self.history[level])) >= 0:
             logits[previous] += self.hold_bias
         top_p = self.top_p_temporal if level == 0 else self.top_p_depth
         return sample_top_p(mask_pad(logits, self.sizes.pad_token), self.temperature, top_p, self.generator)

@@ -118,7 +118,8 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
                         cfg.idle.window_samples, cfg.idle.l2_threshold, cfg.idle.rewind_below_tokens)
     return GestureGenerator(lm, codecs, temperature=cfg.temperature, top_p_temporal=cfg.top_p_temporal,
                             top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
-                            dtype=cfg.dtype, hold_bias=cfg.hold_bias, hold_levels=cfg.hold_levels, idle_gate=idle, micro_motion=build_micro_motion(cfg.micro_motion, seed),
+                            dtype=cfg.dtype, hold_bias=cfg.hold_bias, hold_levels=cfg.hold_levels, idle_gate=idle,
+                            micro_motion=build_micro_motion(cfg.micro_motion, seed),
                             stabilizer=build_stabilizer(cfg.stabilizer),
                             initial_translation=cfg.initial_translation)
 

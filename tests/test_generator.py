@@ -86,7 +86,7 @@ def test_cfg_guides_every_level_but_the_lower_body():
     assert 0 <= logits < 16  # pad (16) masked
 
 
-def test_hold_bias_repeats_the_previous_token_of_its_levels_only():
+def test_hold_bias_repeats_the_previous_token_at_its_levels():
     conditions = _conditions(12)
     free = np.stack([out.tokens for out in _run(_generator(seed=3), conditions)])  # (T, K)
     held = np.stack([out.tokens for out in _run(_generator(seed=3, hold_bias=1e4, hold_levels=(1, 2)), conditions)])
