@@ -37,15 +37,28 @@ class MicroMotionConfig:
     enabled: bool = False
     joints: tuple[int, ...] = LAYERED_MICRO_JOINTS  # spine, neck, collars, head, wrists: the training data's layer
     scale: float = 1.0  # times every fitted standard deviation
-    blinks_per_minute: float = 17.0  # the synthetic agent's (gesture.synth.face.BLINKS_PER_MINUTE); 0: none
 
     def __post_init__(self) -> None:
         if not self.joints:
             raise ConfigError("gesture.micro_motion.joints: must name at least one joint")
         if self.scale < 0:
             raise ConfigError(f"gesture.micro_motion.scale: must be >= 0, got {self.scale}")
+
+
+@dataclass(frozen=True)
+class FaceLayerConfig:
+    """The face layer on the decoded expressions (gesture.face_layer; not in the reference, off by default)."""
+
+    enabled: bool = False
+    # the total rate, the decoded face's own blinks included; the synthetic agent's (gesture.synth.face); 0: none added
+    blinks_per_minute: float = 17.0
+    brow_cutoff_hz: float = 0.0  # the brow activation's low-pass; 0: as decoded
+
+    def __post_init__(self) -> None:
         if not 0 <= self.blinks_per_minute < 75:
-            raise ConfigError(f"gesture.micro_motion.blinks_per_minute: must be in [0, 75), got {self.blinks_per_minute}")
+            raise ConfigError(f"gesture.face.blinks_per_minute: must be in [0, 75), got {self.blinks_per_minute}")
+        if self.brow_cutoff_hz < 0:
+            raise ConfigError(f"gesture.face.brow_cutoff_hz: must be >= 0, got {self.brow_cutoff_hz}")
 
 
 ARM_JOINTS = (18, 19, 20, 21)  # elbows and wrists
@@ -100,6 +113,7 @@ class GestureConfig:
     dialogue_spec: Optional[ConditionSpec] = None  # checked against the LM checkpoint's spec at start-up
     idle: IdleGateConfig = field(default_factory=IdleGateConfig)
     micro_motion: MicroMotionConfig = field(default_factory=MicroMotionConfig)
+    face: FaceLayerConfig = field(default_factory=FaceLayerConfig)
     stabilizer: StabilizerConfig = field(default_factory=StabilizerConfig)
 
     def __post_init__(self) -> None:

@@ -10,8 +10,9 @@ guidance on a doubled batch except for the lower-body levels, and the pad logit 
 hold bias (not in the reference) raises the logit of the previous step's token at chosen levels. The optional
 idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history); the optional
 micro-motion layer (`gesture.micro_motion`, not in the reference) then adds the micro-motion the codecs' training data
-(its gesture layer) leaves out, and the optional stabilizer (`gesture.stabilizer`, not in the reference either)
-smooths the arms' slow drift so that they hold still between strokes. Each codec
+(its gesture layer) leaves out, the optional face layer (`gesture.face_layer`) tops the decoded blinks up to a rate
+and smooths the brows, and the optional stabilizer (`gesture.stabilizer`) smooths the arms' slow drift so that
+they hold still between strokes (neither in the reference). Each codec
 stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
 at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
 so this puts the feet near the floor.
@@ -35,6 +36,7 @@ from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
+from gesture.face_layer import FaceLayer
 from gesture.micro_motion import MicroMotion
 from gesture.nn.streaming import StreamingModule
 from gesture.stabilizer import ArmStabilizer
@@ -61,7 +63,8 @@ class GestureGenerator:
                  top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
                  seed: int = 0, dtype: str = "float32", hold_bias: float = 0.0, hold_levels: tuple[int, ...] = (),
                  idle_gate: Optional[IdleGate] = None,
-                 micro_motion: Optional[MicroMotion] = None, stabilizer: Optional[ArmStabilizer] = None,
+                 micro_motion: Optional[MicroMotion] = None, face_layer: Optional[FaceLayer] = None,
+                 stabilizer: Optional[ArmStabilizer] = None,
                  initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
                  engine: Optional[StreamingModule] = None) -> None:
         self.sizes = lm.sizes
@@ -82,6 +85,7 @@ class GestureGenerator:
         self.unguided = set(self.sizes.lower_levels)
         self.idle_gate = idle_gate
         self.micro_motion = micro_motion
+        self.face_layer = face_layer
         self.stabilizer = stabilizer
         self.initial_translation = np.asarray(initial_translation, np.float64)
         self.seed = seed
@@ -97,6 +101,8 @@ class GestureGenerator:
             self.idle_gate.reset()
         if self.micro_motion is not None:
             self.micro_motion.reset()
+        if self.face_layer is not None:
+            self.face_layer.reset()
         if self.stabilizer is not None:
             self.stabilizer.reset()
         self.generator.manual_seed(self.seed)
@@ -130,7 +136,9 @@ class GestureGenerator:
             decoded = self.idle_gate.apply(decoded)
         poses, trans, expressions = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
         if self.micro_motion is not None:
-            poses, expressions = self.micro_motion.step(poses, expressions, agent_pcm)
+            poses = self.micro_motion.step(poses, agent_pcm)
+        if self.face_layer is not None:
+            expressions = self.face_layer.step(expressions)
         if self.stabilizer is not None:
             poses = self.stabilizer.step(poses)
         poses = poses.astype(np.float32)

@@ -33,8 +33,7 @@ from gesture.config import IdleGateConfig
 from gesture.synth.agent import (ELBOW_GATE_LOG_STD, ELBOW_SIDES, MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
                                  MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, micro_gate)
 from gesture.synth.calibration import load_calibration
-from gesture.synth.face import BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S
-from gesture.synth.tracks import NOISE_TRUNCATE_SIGMAS, bump, noise_sigma_frames
+from gesture.synth.tracks import NOISE_TRUNCATE_SIGMAS, noise_sigma_frames
 
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
 LIMIT_STDS = 2.5  # each offset is softly limited (tanh) to this many fitted stds per axis: no wrist folds over
@@ -118,37 +117,14 @@ class VoiceEnvelope:
         return self.value
 
 
-class BlinkTrain:
-    """`closure(t_s)` in [0, 1] of a seeded Poisson blink train, asked for at increasing times (causal: a blink is
-    drawn when the previous one starts and begins at its drawn time)."""
-
-    def __init__(self, per_minute: float, rng: np.random.Generator) -> None:
-        if per_minute * BLINK_REFRACTORY_S >= 60:
-            raise ValueError(f"blinks_per_minute: must be below {60 / BLINK_REFRACTORY_S:g}, got {per_minute}")
-        self.mean_gap_s, self.rng = 60.0 / per_minute, rng
-        self.blinks: list[tuple[float, float, float, float]] = []  # (centre, rise, hold, fall) still to finish
-        self.next_start_s = rng.exponential(self.mean_gap_s)
-
-    def closure(self, t_s: float) -> float:
-        while self.next_start_s <= t_s:
-            rise, hold, fall = (self.rng.uniform(*r) for r in (BLINK_RISE_S, BLINK_HOLD_S, BLINK_FALL_S))
-            self.blinks.append((self.next_start_s + rise, rise, hold, fall))
-            self.next_start_s += BLINK_REFRACTORY_S + self.rng.exponential(self.mean_gap_s - BLINK_REFRACTORY_S)
-        self.blinks = [b for b in self.blinks if t_s <= b[0] + b[2] + b[3]]
-        shapes = [float(bump(np.array([t_s]), *b)[0]) for b in self.blinks]
-        return min(1.0, sum(shapes))
-
-
 class MicroMotion:
-    """`step(poses (F, 55, 3), expressions (F, 100), agent_pcm)` adds one micro-motion offset per frame to `joints`
-    and the blink train to the expressions; `reset()` per session. As in the synthetic data, its size follows the
+    """`step(poses (F, 55, 3), agent_pcm)` adds one micro-motion offset per frame to `joints`; `reset()` per session. As in the synthetic data, its size follows the
     agent's own audio: calmer while it is silent, livelier with its speech envelope.
 
-    `params`: joint -> ((3,) std in rad per local axis, cutoff in Hz); `scale` multiplies every std;
-    `blinks_per_minute` 0 adds no blinks."""
+    `params`: joint -> ((3,) std in rad per local axis, cutoff in Hz); `scale` multiplies every std."""
 
     def __init__(self, params: Mapping[int, tuple[np.ndarray, float]], fps: float, seed: int = 0,
-                 scale: float = 1.0, listening_scale: float = MICRO_LISTENING, blinks_per_minute: float = 0.0) -> None:
+                 scale: float = 1.0, listening_scale: float = MICRO_LISTENING) -> None:
         if not params:
             raise ValueError("micro-motion needs at least one joint")
         self.joints = sorted(params)
@@ -162,7 +138,7 @@ class MicroMotion:
         self.listening_scale = listening_scale
         self.speaking_alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
         self.envelope = VoiceEnvelope(fps)
-        self.fps, self.seed, self.blinks_per_minute = fps, seed, blinks_per_minute
+        self.seed = seed
         self.reset()
 
     def reset(self) -> None:
@@ -173,9 +149,6 @@ class MicroMotion:
             self.elbow_gate.reset(self.rng)
         self.speaking = 0.0
         self.envelope.reset()
-        self.frame = 0
-        blink_rng = np.random.default_rng([self.seed, 1])  # its own stream: blinks do not shift the body's noise
-        self.blinks = BlinkTrain(self.blinks_per_minute, blink_rng) if self.blinks_per_minute > 0 else None
 
     def offsets(self, rms: float) -> np.ndarray:
         """The next frame's (J, 3) axis-angle offsets, given the frame's agent audio RMS (speaking above the idle
@@ -193,29 +166,21 @@ class MicroMotion:
         limit = LIMIT_STDS * self.std
         return limit * np.tanh(offset / np.maximum(limit, 1e-12))
 
-    def step(self, poses: np.ndarray, expressions: np.ndarray,
-             agent_pcm: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """(F, 55, 3) axis-angle, (F, 100) expressions, this step's agent audio (float in [-1, 1], or None: silent)
-        -> the same with each frame's offsets post-multiplied on `joints` and its blink closure added along the
-        blink pattern."""
+    def step(self, poses: np.ndarray, agent_pcm: np.ndarray | None) -> np.ndarray:
+        """(F, 55, 3) axis-angle and this step's agent audio (float in [-1, 1], or None: silent) -> the same poses
+        with each frame's offsets post-multiplied on `joints`."""
         offsets = np.stack([self.offsets(rms) for rms in frame_rms(agent_pcm, len(poses))])  # (F, J, 3)
         local = axis_angle_to_matrix(torch.from_numpy(poses[:, self.joints]).double())  # (F, J, 3, 3)
         moved = local @ axis_angle_to_matrix(torch.from_numpy(offsets))
         out = poses.copy()
         out[:, self.joints] = matrix_to_axis_angle(moved).numpy()
-        times_s = (self.frame + np.arange(len(poses))) / self.fps
-        self.frame += len(poses)
-        if self.blinks is None:
-            return out, expressions
-        closure = np.array([self.blinks.closure(t) for t in times_s])  # (F,)
-        return out, (expressions + closure[:, None] * BLINK_PSI[None]).astype(expressions.dtype)
+        return out
 
 
-def calibrated_micro_motion(joints: Sequence[int], fps: float, seed: int, scale: float = 1.0,
-                            blinks_per_minute: float = 0.0) -> MicroMotion:
+def calibrated_micro_motion(joints: Sequence[int], fps: float, seed: int, scale: float = 1.0) -> MicroMotion:
     """The layer with the calibration's fitted parameters for `joints` (each must have been fitted)."""
     fitted = load_calibration().micro_motion
     missing = [j for j in joints if j not in fitted]
     if missing:
         raise ValueError(f"joints {missing}: no fitted micro-motion (fitted: {sorted(fitted)})")
-    return MicroMotion({j: fitted[j] for j in joints}, fps, seed, scale, blinks_per_minute=blinks_per_minute)
+    return MicroMotion({j: fitted[j] for j in joints}, fps, seed, scale)

@@ -24,7 +24,8 @@ from core.config import ConfigError
 from core.messages import DialogueStep, GestureStep, Message
 from core.component import RunContext
 from core.timing import MOTION_FPS, STEP_SAMPLES
-from gesture.config import GestureConfig, MicroMotionConfig, StabilizerConfig
+from gesture.config import FaceLayerConfig, GestureConfig, MicroMotionConfig, StabilizerConfig
+from gesture.face_layer import FaceLayer
 from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
@@ -120,6 +121,7 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
                             top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
                             dtype=cfg.dtype, hold_bias=cfg.hold_bias, hold_levels=cfg.hold_levels, idle_gate=idle,
                             micro_motion=build_micro_motion(cfg.micro_motion, seed),
+                            face_layer=build_face_layer(cfg.face, seed),
                             stabilizer=build_stabilizer(cfg.stabilizer),
                             initial_translation=cfg.initial_translation)
 
@@ -129,9 +131,16 @@ def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotio
     if not cfg.enabled:
         return None
     try:
-        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, cfg.blinks_per_minute)
+        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale)
     except ValueError as error:
         raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
+
+
+def build_face_layer(cfg: FaceLayerConfig, seed: int) -> Optional[FaceLayer]:
+    """The `gesture.face` layer on the decoded expressions, or None when it is off."""
+    if not cfg.enabled:
+        return None
+    return FaceLayer(MOTION_FPS, seed, cfg.blinks_per_minute, cfg.brow_cutoff_hz)
 
 
 def build_stabilizer(cfg: StabilizerConfig) -> Optional[ArmStabilizer]:

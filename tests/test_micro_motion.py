@@ -13,7 +13,6 @@ from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.micro_motion import SPEAKING_RMS, CausalSmoothNoise, VoiceEnvelope, calibrated_micro_motion, frame_rms
 from gesture.process import build_micro_motion
-from gesture.synth.face import BLINK_PSI, BLINKS_PER_MINUTE
 from gesture.synth.tracks import smooth_noise
 
 torch.set_num_threads(1)
@@ -30,8 +29,7 @@ def _rest_poses(frames: int) -> np.ndarray:
 def _moved(layer, poses: np.ndarray, speaking: bool = True) -> np.ndarray:
     """The layer run step by step (2 frames each) on speech or silence."""
     pcm = STEP_PCM if speaking else np.zeros_like(STEP_PCM)
-    expressions = np.zeros((2, 100), np.float32)
-    return np.concatenate([layer.step(poses[i:i + 2], expressions, pcm)[0] for i in range(0, len(poses), 2)])
+    return np.concatenate([layer.step(poses[i:i + 2], pcm) for i in range(0, len(poses), 2)])
 
 
 def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
@@ -50,10 +48,9 @@ def test_streaming_in_steps_equals_one_call_and_reset_replays(joints):
     poses = _rest_poses(40)
     layer = calibrated_micro_motion(joints, MOTION_FPS, seed=3)
     pcm = np.concatenate([STEP_PCM * (k % 3) for k in range(20)])  # speech and silence
-    whole = layer.step(poses, np.zeros((40, 100), np.float32), pcm)[0]
+    whole = layer.step(poses, pcm)
     layer.reset()
-    steps = np.concatenate([layer.step(poses[i:i + 2], np.zeros((2, 100), np.float32), pcm[960 * i:960 * (i + 2)])[0]
-                            for i in range(0, 40, 2)])
+    steps = np.concatenate([layer.step(poses[i:i + 2], pcm[960 * i:960 * (i + 2)]) for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
     other = _moved(calibrated_micro_motion(joints, MOTION_FPS, seed=4), poses)
     assert not np.array_equal(whole, other)
@@ -89,19 +86,6 @@ def test_voice_envelope_divides_by_the_voiced_frames_95th_percentile():
     assert quiet < 0.01 and envelope.loud_rms == pytest.approx(np.percentile(rms, 95), rel=0.1)  # ... keeps the level
 
 
-def test_blinks_come_at_the_synthetic_rate_along_the_blink_pattern():
-    frames = 25 * 600  # ten minutes
-    layer = calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0, blinks_per_minute=BLINKS_PER_MINUTE)
-    expressions = np.zeros((frames, 100), np.float32)
-    _, blinked = layer.step(_rest_poses(frames), expressions, None)
-    closure = blinked @ BLINK_PSI / (BLINK_PSI @ BLINK_PSI)  # (T,) back along the pattern
-    np.testing.assert_allclose(blinked, closure[:, None] * BLINK_PSI[None], atol=1e-6)
-    starts = np.flatnonzero((closure[1:] > 0.5) & (closure[:-1] <= 0.5))
-    assert 0.8 * BLINKS_PER_MINUTE < len(starts) / 10 < 1.2 * BLINKS_PER_MINUTE
-    assert closure.max() <= 1.0 + 1e-6 and np.diff(starts).min() >= 0.8 * MOTION_FPS - 1
-    assert MicroMotionConfig().blinks_per_minute == BLINKS_PER_MINUTE  # the config's default is the data's rate
-
-
 def test_speaking_follows_the_idle_gates_silence_level():
     assert not frame_rms(None, 2).any() and not frame_rms(np.zeros(1920, np.float32), 2).any()
     assert (frame_rms(np.full(1920, 0.003, np.float32), 2) < SPEAKING_RMS).all()
@@ -120,14 +104,12 @@ def test_generator_applies_the_layer_after_decoding():
         untouched = [j for j in range(55) if j not in JOINTS]
         np.testing.assert_allclose(b.poses[:, untouched], a.poses[:, untouched], atol=1e-6)
         assert not np.allclose(b.poses[:, list(JOINTS)], a.poses[:, list(JOINTS)], atol=1e-4)
-        np.testing.assert_array_equal(a.expressions, b.expressions)  # no blinks asked for
+        np.testing.assert_array_equal(a.expressions, b.expressions)  # the face is not its part
 
 
 def test_config_errors_name_the_option():
     with pytest.raises(ConfigError, match="gesture.micro_motion.scale: must be >= 0"):
         MicroMotionConfig(scale=-1.0)
-    with pytest.raises(ConfigError, match=r"gesture.micro_motion.blinks_per_minute: must be in \[0, 75\)"):
-        MicroMotionConfig(blinks_per_minute=80.0)
     with pytest.raises(ConfigError, match="gesture.micro_motion.joints: must name at least one joint"):
         MicroMotionConfig(joints=())
     with pytest.raises(ConfigError, match=r"gesture.micro_motion.joints: joints \[30\]: no fitted micro-motion"):

@@ -8,8 +8,8 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 ``--motion`` reuses one) and compared with the real motion of that clip. Two references are measured the same
 way, so the report is seen to discriminate:
 
-- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.micro_motion.enabled=false``,
-  ``gesture.stabilizer.enabled=false``): what its LM and codecs alone carry; not measured with ``--motion``;
+- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.micro_motion``, ``gesture.face``
+  and ``gesture.stabilizer`` off): what its LM and codecs alone carry; not measured with ``--motion``;
 - ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
 - ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``): the ceiling of what
@@ -467,7 +467,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         motions = {"generated": cut(generated, n)}
         if not args.motion:  # the same agent without its runtime layers: what the LM and codecs alone carry
             plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only",
-                                   args.set + ["gesture.micro_motion.enabled=false", "gesture.stabilizer.enabled=false"])
+                                   args.set + ["gesture.micro_motion.enabled=false", "gesture.face.enabled=false",
+                                              "gesture.stabilizer.enabled=false"])
             motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
         motions |= {"synthetic_gt": synthetic,
                    "baseline": baseline_reference(real, args.seed),

@@ -23,8 +23,6 @@ import numpy as np
 from core.body import NUM_EXPRESSIONS
 from gesture.synth.tracks import add_bump
 
-_BLINK_ROW = {76: -0.118, 73: 0.101, 19: 0.099, 81: -0.096, 22: 0.095, 35: 0.091}  # render's blink row
-
 
 def _pattern(coeffs: dict[int, float]) -> np.ndarray:
     psi = np.zeros(NUM_EXPRESSIONS)
@@ -33,17 +31,15 @@ def _pattern(coeffs: dict[int, float]) -> np.ndarray:
     return psi
 
 
-def _blink_psi() -> np.ndarray:
-    row = _pattern(_BLINK_ROW)
-    return row / (row @ row)  # activation row . psi = 1
-
-
+# render.avatar.EXPRESSION_MAP's rows: psi -> the avatar's activation of that shape
+BLINK_ROW = _pattern({76: -0.118, 73: 0.101, 19: 0.099, 81: -0.096, 22: 0.095, 35: 0.091})
+BROW_ROW = _pattern({2: 1.2, 6: 0.8})
 SMILE_PSI = _pattern({0: 1 / 0.9})
 BROW_PSI = _pattern({6: 1 / 0.8})
 LIPS_APART_PSI = _pattern({1: -1 / 1.2})
 MOUTH_WIDE_PSI = _pattern({7: 1 / 0.5})
 PUCKER_PSI = _pattern({8: 1 / 0.6})
-BLINK_PSI = _blink_psi()
+BLINK_PSI = BLINK_ROW / (BLINK_ROW @ BLINK_ROW)  # BLINK_ROW . psi = 1
 FACE_PATTERNS = {"smile": SMILE_PSI, "brow_raise": BROW_PSI, "lips_apart": LIPS_APART_PSI,
                  "mouth_wide": MOUTH_WIDE_PSI, "pucker": PUCKER_PSI, "blink": BLINK_PSI}
 JAW_OPEN_RAD = 0.10
