@@ -118,8 +118,9 @@ class VoiceEnvelope:
 
 
 class MicroMotion:
-    """`step(poses (F, 55, 3), agent_pcm)` adds one micro-motion offset per frame to `joints`; `reset()` per session. As in the synthetic data, its size follows the
-    agent's own audio: calmer while it is silent, livelier with its speech envelope.
+    """`step(poses (F, 55, 3), agent_pcm)` adds one micro-motion offset per frame to `joints`; `reset()` per
+    session. As in the synthetic data, its size follows the agent's own audio: calmer while it is silent, livelier
+    with its speech envelope.
 
     `params`: joint -> ((3,) std in rad per local axis, cutoff in Hz); `scale` multiplies every std."""
 
