@@ -32,11 +32,11 @@ from gesture.body.regions import LOWER_VELOCITY_SLICE, features_to_motion
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
+from gesture.face_layer import FaceLayer
 from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
-from gesture.face_layer import FaceLayer
 from gesture.micro_motion import MicroMotion
 from gesture.nn.streaming import StreamingModule
 from gesture.stabilizer import ArmStabilizer
