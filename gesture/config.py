@@ -61,6 +61,20 @@ class FaceLayerConfig:
             raise ConfigError(f"gesture.face.brow_cutoff_hz: must be >= 0, got {self.brow_cutoff_hz}")
 
 
+@dataclass(frozen=True)
+class FootLockConfig:
+    """Foot locking on the decoded legs (gesture.foot_lock; not in the reference, off by default)."""
+
+    enabled: bool = False
+    release_m: float = 0.1  # a lock lets go when the decoded ankle is this far from where it was planted
+    blend_s: float = 0.2  # the legs turn between decoded and locked over this long
+
+    def __post_init__(self) -> None:
+        for name in ("release_m", "blend_s"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"gesture.foot_lock.{name}: must be > 0, got {getattr(self, name)}")
+
+
 ARM_JOINTS = (18, 19, 20, 21)  # elbows and wrists
 
 
@@ -114,6 +128,7 @@ class GestureConfig:
     idle: IdleGateConfig = field(default_factory=IdleGateConfig)
     micro_motion: MicroMotionConfig = field(default_factory=MicroMotionConfig)
     face: FaceLayerConfig = field(default_factory=FaceLayerConfig)
+    foot_lock: FootLockConfig = field(default_factory=FootLockConfig)
     stabilizer: StabilizerConfig = field(default_factory=StabilizerConfig)
 
     def __post_init__(self) -> None:

@@ -10,9 +10,10 @@ guidance on a doubled batch except for the lower-body levels, and the pad logit 
 hold bias (not in the reference) raises the logit of the previous step's token at chosen levels. The optional
 idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history); the optional
 micro-motion layer (`gesture.micro_motion`, not in the reference) then adds the micro-motion the codecs' training data
-(its gesture layer) leaves out, the optional face layer (`gesture.face_layer`) tops the decoded blinks up to a rate
-and smooths the brows, and the optional stabilizer (`gesture.stabilizer`) smooths the arms' slow drift so that
-they hold still between strokes (neither in the reference). Each codec
+(its gesture layer) leaves out, the optional foot lock (`gesture.foot_lock`) holds planted feet where the decoded
+contacts planted them, the optional face layer (`gesture.face_layer`) tops the decoded blinks up to a rate and
+smooths the brows, and the optional stabilizer (`gesture.stabilizer`) smooths the arms' slow drift so that they
+hold still between strokes (none of these is in the reference). Each codec
 stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
 at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
 so this puts the feet near the floor.
@@ -28,11 +29,12 @@ import torch
 
 from core.body import REGIONS
 from core.timing import FRAMES_PER_STEP, MOTION_FPS
-from gesture.body.regions import LOWER_VELOCITY_SLICE, features_to_motion
+from gesture.body.regions import LOWER_CONTACT_SLICE, LOWER_VELOCITY_SLICE, features_to_motion
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
 from gesture.face_layer import FaceLayer
+from gesture.foot_lock import FootLock
 from gesture.lm.idle import IdleGate
 from gesture.lm.model import GestureLM
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
@@ -64,7 +66,7 @@ class GestureGenerator:
                  seed: int = 0, dtype: str = "float32", hold_bias: float = 0.0, hold_levels: tuple[int, ...] = (),
                  idle_gate: Optional[IdleGate] = None,
                  micro_motion: Optional[MicroMotion] = None, face_layer: Optional[FaceLayer] = None,
-                 stabilizer: Optional[ArmStabilizer] = None,
+                 foot_lock: Optional[FootLock] = None, stabilizer: Optional[ArmStabilizer] = None,
                  initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
                  engine: Optional[StreamingModule] = None) -> None:
         self.sizes = lm.sizes
@@ -86,6 +88,7 @@ class GestureGenerator:
         self.idle_gate = idle_gate
         self.micro_motion = micro_motion
         self.face_layer = face_layer
+        self.foot_lock = foot_lock
         self.stabilizer = stabilizer
         self.initial_translation = np.asarray(initial_translation, np.float64)
         self.seed = seed
@@ -103,6 +106,8 @@ class GestureGenerator:
             self.micro_motion.reset()
         if self.face_layer is not None:
             self.face_layer.reset()
+        if self.foot_lock is not None:
+            self.foot_lock.reset()
         if self.stabilizer is not None:
             self.stabilizer.reset()
         self.generator.manual_seed(self.seed)
@@ -134,7 +139,9 @@ class GestureGenerator:
                 self.idle_gate.push_audio(agent_pcm)
             idle = self.idle_gate.silent
             decoded = self.idle_gate.apply(decoded)
-        poses, trans, expressions = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
+        poses, trans, expressions, contacts = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
+        if self.foot_lock is not None:
+            poses = self.foot_lock.step(poses, trans, contacts)
         if self.micro_motion is not None:
             poses = self.micro_motion.step(poses, agent_pcm)
         if self.face_layer is not None:
@@ -183,14 +190,15 @@ class GestureGenerator:
             tokens[level] = self._sample(logits, level)
         return torch.tensor(tokens), (torch.stack(face_logits) if face_logits else None)
 
-    def _decode(self, tokens: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _decode(self, tokens: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """-> poses (2, 55, 3), trans (2, 3), expressions (2, 100) and the decoded foot contacts (2, 4)."""
         features = {name: self.decoders[name].step(tokens[self.level_slices[name]].view(1, -1, 1))[0].float().numpy()
                     for name in REGIONS}  # name -> (2, nfeats)
         poses, trans, expressions = features_to_motion(features["upper"], features["lower"], features["face"],
                                                        trans0=self.carry, fps=MOTION_FPS)
         last_velocity = features["lower"][FRAMES_PER_STEP - 1, LOWER_VELOCITY_SLICE]
         self.carry = trans[-1].astype(np.float64) + last_velocity / MOTION_FPS
-        return poses, trans, expressions
+        return poses, trans, expressions, features["lower"][:, LOWER_CONTACT_SLICE]
 
 
 CODEC_FORMS = {"float32": "float32", "bfloat16": "float16", "int8": "int8"}  # LM weight form -> codec weights

@@ -24,8 +24,10 @@ from core.config import ConfigError
 from core.messages import DialogueStep, GestureStep, Message
 from core.component import RunContext
 from core.timing import MOTION_FPS, STEP_SAMPLES
-from gesture.config import FaceLayerConfig, GestureConfig, MicroMotionConfig, StabilizerConfig
+from gesture.config import FaceLayerConfig, FootLockConfig, GestureConfig, MicroMotionConfig, StabilizerConfig
+from gesture.body.skeleton import Skeleton
 from gesture.face_layer import FaceLayer
+from gesture.foot_lock import FootLock
 from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
@@ -121,7 +123,7 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
                             top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
                             dtype=cfg.dtype, hold_bias=cfg.hold_bias, hold_levels=cfg.hold_levels, idle_gate=idle,
                             micro_motion=build_micro_motion(cfg.micro_motion, seed),
-                            face_layer=build_face_layer(cfg.face, seed),
+                            face_layer=build_face_layer(cfg.face, seed), foot_lock=build_foot_lock(cfg.foot_lock),
                             stabilizer=build_stabilizer(cfg.stabilizer),
                             initial_translation=cfg.initial_translation)
 
@@ -141,6 +143,13 @@ def build_face_layer(cfg: FaceLayerConfig, seed: int) -> Optional[FaceLayer]:
     if not cfg.enabled:
         return None
     return FaceLayer(MOTION_FPS, seed, cfg.blinks_per_minute, cfg.brow_cutoff_hz)
+
+
+def build_foot_lock(cfg: FootLockConfig) -> Optional[FootLock]:
+    """The `gesture.foot_lock` layer on the decoded legs (the built-in skeleton, as the training data's), or None."""
+    if not cfg.enabled:
+        return None
+    return FootLock(Skeleton.default(), MOTION_FPS, cfg.release_m, cfg.blend_s)
 
 
 def build_stabilizer(cfg: StabilizerConfig) -> Optional[ArmStabilizer]:

@@ -53,6 +53,18 @@ def test_strokes_are_counted_one_per_movement():
     assert R.stroke_times_s(wrist * 0.1).size == 0  # 1.5 cm: micro-motion, not a stroke
 
 
+def test_feet_are_planted_until_they_step():
+    n = 10 * FPS
+    poses, trans = np.zeros((n, 55, 3)), np.zeros((n, 3))
+    assert R.feet_stats(poses, trans, Skeleton.default())["ankles_planted_fraction"] == 1.0
+    trans[:, 0] = 0.01 * np.arange(n) / FPS  # the body slides 1 cm/s: still planted
+    assert R.feet_stats(poses, trans, Skeleton.default())["ankles_planted_fraction"] == 1.0
+    trans[5 * FPS:, 0] += 0.5 * np.arange(5 * FPS) / FPS  # then both feet slide 0.5 m/s: half the frames
+    feet = R.feet_stats(poses, trans, Skeleton.default())
+    assert feet["ankles_planted_fraction"] == pytest.approx(0.5, abs=0.02)
+    assert feet["ankle_speed_p90"] == pytest.approx(0.51, abs=0.01)
+
+
 def test_face_events_are_counted():
     n = 60 * FPS
     blink, brow, smile = np.zeros(n), np.zeros(n), np.full(n, 0.2)

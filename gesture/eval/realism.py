@@ -8,8 +8,9 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 ``--motion`` reuses one) and compared with the real motion of that clip. Two references are measured the same
 way, so the report is seen to discriminate:
 
-- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.micro_motion``, ``gesture.face``
-  and ``gesture.stabilizer`` off): what its LM and codecs alone carry; not measured with ``--motion``;
+- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.micro_motion``, ``gesture.face``,
+  ``gesture.foot_lock`` and ``gesture.stabilizer`` off): what its LM and codecs alone carry; not measured with
+  ``--motion``;
 - ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
 - ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``): the ceiling of what
@@ -23,6 +24,8 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - gesture strokes per minute (peaks of wrist speed in the body frame, ``STROKE_*``) and the distribution of hand
   height (wrist above the pelvis in the body frame: percentiles, given as differences from the real clip's in
   metres, and the overlap of the two histograms, 1 = the same distribution);
+- the feet: the fraction of frames an ankle is planted (moving over the floor slower than ``PLANTED_MPS``) and the
+  90th percentile of its speed (steps);
 - blinks, brow raises and smiles per minute (events of the avatar's expression activations, ``FACE_EVENTS``).
 
 Every scalar is also given as a ratio to the real clip's. ``--out`` gets ``realism.json``, ``speeds.png`` (the
@@ -67,10 +70,12 @@ JOINT_GROUPS = {
     "neck_head": (12, 15),
     "spine": (3, 6, 9),
 }
+RUNTIME_LAYERS = ("micro_motion", "face", "foot_lock", "stabilizer")  # config sections of the layers after decoding
 GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four
 STILL_RAD_S = 0.2
 EDGE_S = 2.0
-PELVIS, WRISTS = 0, (20, 21)
+PELVIS, WRISTS, ANKLES = 0, (20, 21), (7, 8)
+PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
 STROKE_SPEED_MPS = 0.35  # a stroke: a wrist speed peak at least this fast ...
 STROKE_PROMINENCE_MPS = 0.2  # ... standing out this much from its surroundings ...
 STROKE_MIN_GAP_S = 0.25  # ... and this far from the previous one (per wrist)
@@ -180,6 +185,15 @@ def hand_stats(joints: np.ndarray, fps: float = MOTION_FPS) -> dict:
             "hand_height_median_m": float(p50), "hand_height_p90_m": float(p90)}
 
 
+def feet_stats(poses: np.ndarray, trans: np.ndarray, skeleton: Skeleton, fps: float = MOTION_FPS) -> dict:
+    """The ankles' horizontal speed in the world (m/s): the fraction of frames they are planted, and its 90th
+    percentile (steps)."""
+    joints, _ = forward_kinematics_np(skeleton, np.asarray(poses, np.float32), np.asarray(trans, np.float32))
+    speed = np.linalg.norm(np.diff(joints[:, list(ANKLES)][..., [0, 2]], axis=0), axis=-1).reshape(-1) * fps
+    return {"ankles_planted_fraction": float((speed < PLANTED_MPS).mean()),
+            "ankle_speed_p90": float(np.percentile(speed, 90))}
+
+
 def height_histogram(joints: np.ndarray) -> np.ndarray:
     height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS:PELVIS + 1, 1]).reshape(-1)
     hist, _ = np.histogram(np.clip(height, HEIGHT_BINS_M[0], HEIGHT_BINS_M[-1]), HEIGHT_BINS_M)
@@ -213,10 +227,11 @@ def face_stats(expressions: np.ndarray, fps: float = MOTION_FPS) -> dict:
 
 
 def describe(clip: M.MotionClip, skeleton: Skeleton) -> dict:
-    """Everything that does not need the real clip: groups, hands, face (inner part of the clip)."""
+    """Everything that does not need the real clip: groups, hands, feet, face (inner part of the clip)."""
     poses = inner(clip.poses)
     joints = body_frame_joints(poses, skeleton)
-    return {"groups": group_stats(poses), "hands": hand_stats(joints), "face": face_stats(inner(clip.expressions))}
+    return {"groups": group_stats(poses), "hands": hand_stats(joints),
+            "feet": feet_stats(poses, inner(clip.trans), skeleton), "face": face_stats(inner(clip.expressions))}
 
 
 def protocol_metrics(clip: M.MotionClip, real: M.MotionClip, speech, mean_speed: np.ndarray) -> dict:
@@ -337,7 +352,7 @@ def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
         protocol = protocol_metrics(clip, real, speech, mean_speed)
         report["real"]["protocol"] = {"l1div": protocol["real_l1div"], "beat_align": protocol["real_beat_align"]}
         entry = dict(desc, protocol={k: protocol[k] for k in ("l1div", "beat_align", "fgd_kinetic")})
-        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "face")}, real_desc)
+        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "feet", "face")}, real_desc)
         entry["ratios"]["l1div"] = protocol["l1div"] / protocol["real_l1div"]
         entry["beat_align_minus_real"] = protocol["beat_align"] - protocol["real_beat_align"]
         entry["hand_height_overlap"] = float(np.minimum(height_histogram(body_frame_joints(inner(clip.poses), skeleton)),
@@ -423,7 +438,7 @@ def format_table(report: dict) -> str:
         for key in report["real"]["groups"][group]:
             row = [report[n]["ratios"]["groups"][group][key] for n in names]
             lines.append(f"{group + ' ' + key:30s}" + "".join(f"{v:32.2f}" for v in row))
-    for section in ("hands", "face"):
+    for section in ("hands", "feet", "face"):
         for key in report[names[0]]["ratios"][section]:
             row = [report[n]["ratios"][section][key] for n in names]
             lines.append(f"{key:30s}" + "".join(f"{'none':>32s}" if v is None else f"{v:32.2f}" for v in row))
@@ -467,8 +482,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         motions = {"generated": cut(generated, n)}
         if not args.motion:  # the same agent without its runtime layers: what the LM and codecs alone carry
             plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only",
-                                   args.set + ["gesture.micro_motion.enabled=false", "gesture.face.enabled=false",
-                                              "gesture.stabilizer.enabled=false"])
+                                   args.set + [f"gesture.{layer}.enabled=false" for layer in RUNTIME_LAYERS])
             motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
         motions |= {"synthetic_gt": synthetic,
                    "baseline": baseline_reference(real, args.seed),
