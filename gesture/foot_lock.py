@@ -8,9 +8,10 @@ real speaker's move at a median 1.1 cm/s (the README's realism section).
 Per leg and frame: when the decoded ankle contact rises above CONTACT_ON, the ankle's world position becomes the
 leg's anchor. While it lasts, the decoded leg is changed as little as puts the ankle back on the anchor: the knee
 bends further about its own axis until the hip-ankle distance is right, then the thigh swings about the hip,
-keeping its twist, and the ankle keeps its decoded world orientation. The lock lets go when contact ends or the decoded ankle has moved `release_m` from the anchor (a
-step). The leg's local rotations turn from the decoded ones to the solved ones and back over `blend_s`, so locking
-and letting go never jump. Only hips, knees and ankles change.
+keeping its twist, and the ankle keeps its decoded world orientation. The lock lets go when contact ends or the
+decoded ankle has moved `release_m` from the anchor (a step). The leg's local rotations turn from the decoded ones
+to the solved ones and back over `blend_s`, so locking and letting go never jump. Only hips, knees and ankles
+change.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ def _reach(thigh: np.ndarray, knee: np.ndarray, b: np.ndarray, c: np.ndarray, re
     swings, keeping its twist. thigh (N, 3, 3) world, knee (N, 3, 3) local, b, c (3,) rest hip->knee, knee->ankle
     -> the new thigh (world) and knee (local) rotations."""
     u = np.swapaxes(knee, -1, -2) @ b  # (N, 3): b . (knee R_x(d) c) = u . R_x(d) c
-    p, q = u[:, 1] * c[1] + u[:, 2] * c[2], u[:, 2] * c[1] - u[:, 1] * c[2]  # u . R_x(d) c = u_x c_x + P cos d + Q sin d
+    p, q = u[:, 1] * c[1] + u[:, 2] * c[2], u[:, 2] * c[1] - u[:, 1] * c[2]  # u . R_x(d) c = u_x c_x + p cos + q sin
     wanted = ((reach**2).sum(-1) - b @ b - c @ c) / 2 - u[:, 0] * c[0]
     phase, spread = np.arctan2(q, p), np.arccos(np.clip(wanted / np.maximum(np.hypot(p, q), 1e-12), -1.0, 1.0))
     turns = np.stack([phase + spread, phase - spread], -1)
