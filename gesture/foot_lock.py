@@ -22,7 +22,7 @@ from typing import Optional
 import numpy as np
 
 from core.body import CONTACT_JOINTS, NUM_JOINTS
-from gesture.body.rotation import matrix_to_axis_angle
+from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.body.skeleton import Skeleton
 
 CONTACT_ON = 0.5  # a decoded contact above this plants the ankle (the codec's contacts are 0 or 1 in its data)
@@ -38,33 +38,13 @@ class LegLock:
     releasing: bool = False
 
 
-def _exp(aa: np.ndarray) -> np.ndarray:
-    """(..., 3) axis-angle -> (..., 3, 3) (Rodrigues, in numpy: a step's few rotations cost less than through torch)."""
-    theta = np.linalg.norm(aa, axis=-1)[..., None, None]
-    k = aa / np.maximum(theta[..., 0], 1e-12)
-    skew = np.zeros(aa.shape + (3,))
-    skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
-    skew = skew - np.swapaxes(skew, -1, -2)
-    return np.eye(3) + np.sin(theta) * skew + (1 - np.cos(theta)) * skew @ skew
-
-
-def _log(m: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 3) axis-angle; rotations near a half turn take gesture.body.rotation's exact path."""
-    theta = np.arccos(np.clip((np.trace(m, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0))
-    vee = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1)
-    out = vee * np.where(theta < 1e-6, 0.5, theta / (2 * np.sin(np.maximum(theta, 1e-6))))[..., None]
-    half_turn = theta > np.pi - 1e-2
-    if half_turn.any():
-        out[half_turn] = matrix_to_axis_angle(m[half_turn])
-    return out
-
-
 def _swing(v: np.ndarray, w: np.ndarray) -> np.ndarray:
     """(N, 3), (N, 3) -> (N, 3, 3) the smallest rotation turning the direction of `v` onto that of `w`."""
     v, w = (x / np.linalg.norm(x, axis=-1, keepdims=True) for x in (v, w))
     axis = np.cross(v, w)
     angle = np.arctan2(np.linalg.norm(axis, axis=-1), (v * w).sum(-1))
-    return _exp(axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12) * angle[:, None])
+    unit = axis / np.maximum(np.linalg.norm(axis, axis=-1, keepdims=True), 1e-12)
+    return axis_angle_to_matrix_np(unit * angle[:, None])
 
 
 def _reach(thigh: np.ndarray, knee: np.ndarray, b: np.ndarray, c: np.ndarray, reach: np.ndarray):
@@ -79,15 +59,15 @@ def _reach(thigh: np.ndarray, knee: np.ndarray, b: np.ndarray, c: np.ndarray, re
     turns = np.stack([phase + spread, phase - spread], -1)
     turns = np.angle(np.exp(1j * turns))  # wrapped to (-pi, pi]
     bend = turns[np.arange(len(turns)), np.abs(turns).argmin(-1)]  # (N,) the smaller extra flexion
-    knee_new = knee @ _exp(bend[:, None] * KNEE_AXIS)
+    knee_new = knee @ axis_angle_to_matrix_np(bend[:, None] * KNEE_AXIS)
     ankle = np.einsum("nij,nj->ni", thigh, b + np.einsum("nij,j->ni", knee_new, c))  # (N, 3) hip -> the new ankle
     return _swing(ankle, reach) @ thigh, knee_new
 
 
 def _relative_blend(decoded: np.ndarray, solved: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """(N, J, 3, 3) rotations `weight` (N,) of the way from `decoded` to `solved` (along the geodesic)."""
-    delta = _log(np.swapaxes(decoded, -1, -2) @ solved)  # (N, J, 3)
-    return decoded @ _exp(weight[:, None, None] * delta)
+    delta = matrix_to_axis_angle_np(np.swapaxes(decoded, -1, -2) @ solved)  # (N, J, 3)
+    return decoded @ axis_angle_to_matrix_np(weight[:, None, None] * delta)
 
 
 class FootLock:
@@ -152,8 +132,8 @@ class FootLock:
         out = poses.copy()
         trans, contacts = np.asarray(trans, np.float64), np.asarray(contacts)
         for side, leg in enumerate(LEGS):
-            rot = _exp(poses[:, [PELVIS, *leg]].astype(np.float64))  # (F, 4, 3, 3)
+            rot = axis_angle_to_matrix_np(poses[:, [PELVIS, *leg]].astype(np.float64))  # (F, 4, 3, 3)
             held, solved = self._leg(side, rot, trans, contacts[:, self.contact_index[side]] > CONTACT_ON)
             if held.any():
-                out[np.ix_(held, leg)] = _log(solved).astype(poses.dtype)
+                out[np.ix_(held, leg)] = matrix_to_axis_angle_np(solved).astype(poses.dtype)
         return out

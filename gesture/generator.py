@@ -8,12 +8,12 @@ Per step (MIBURI-FACTS sections 3 and 5): the temporal transformer gives level 0
 1..19, each sampled with temperature and top-p (the exact rule of `gesture.lm.sampling`), with classifier-free
 guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level; an optional
 hold bias (not in the reference) raises the logit of the previous step's token at chosen levels. The optional
-idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history); the optional
-micro-motion layer (`gesture.micro_motion`, not in the reference) then adds the micro-motion the codecs' training data
-(its gesture layer) leaves out, the optional foot lock (`gesture.foot_lock`) holds planted feet where the decoded
-contacts planted them, the optional face layer (`gesture.face_layer`) tops the decoded blinks up to a rate and
-smooths the brows, and the optional stabilizer (`gesture.stabilizer`) smooths the arms' slow drift so that they
-hold still between strokes (none of these is in the reference). Each codec
+idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history). Then the
+optional runtime layers, none of them in the reference: the foot lock (`gesture.foot_lock`) holds planted feet where
+the decoded contacts planted them, the micro-motion layer (`gesture.micro_motion`) adds the micro-motion the
+codecs' training data (its gesture layer) leaves out, the face layer (`gesture.face_layer`) tops the decoded blinks
+up to a rate and smooths the brows, and the stabilizer (`gesture.stabilizer`) smooths the arms' slow drift so that
+they hold still between strokes. Each codec
 stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
 at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
 so this puts the feet near the floor.
@@ -100,16 +100,9 @@ class GestureGenerator:
         self.engine.reset_streaming()
         for decoder in self.decoders.values():
             decoder.reset()
-        if self.idle_gate is not None:
-            self.idle_gate.reset()
-        if self.micro_motion is not None:
-            self.micro_motion.reset()
-        if self.face_layer is not None:
-            self.face_layer.reset()
-        if self.foot_lock is not None:
-            self.foot_lock.reset()
-        if self.stabilizer is not None:
-            self.stabilizer.reset()
+        for layer in (self.idle_gate, self.foot_lock, self.micro_motion, self.face_layer, self.stabilizer):
+            if layer is not None:
+                layer.reset()
         self.generator.manual_seed(self.seed)
         self.history = torch.full((self.sizes.n_levels,), -1, dtype=torch.long)
         self.carry = self.initial_translation.copy()

@@ -24,8 +24,8 @@ from core.config import ConfigError
 from core.messages import DialogueStep, GestureStep, Message
 from core.component import RunContext
 from core.timing import MOTION_FPS, STEP_SAMPLES
-from gesture.config import FaceLayerConfig, FootLockConfig, GestureConfig, MicroMotionConfig, StabilizerConfig
 from gesture.body.skeleton import Skeleton
+from gesture.config import FaceLayerConfig, FootLockConfig, GestureConfig, MicroMotionConfig, StabilizerConfig
 from gesture.face_layer import FaceLayer
 from gesture.foot_lock import FootLock
 from gesture.generator import GestureGenerator

@@ -65,6 +65,16 @@ def test_numpy_in_numpy_out():
     np.testing.assert_allclose(R.matrix_to_axis_angle(m), aa, atol=1e-6)
 
 
+def test_numpy_fast_paths_equal_the_torch_ones():
+    aa = np.random.default_rng(0).normal(size=(500, 3))
+    aa[:3] *= 1e-9  # near zero ...
+    aa[3:6] = [[math.pi - 1e-3, 0, 0], [0, 3.14, 0], [0, 0, math.pi]]  # ... and near a half turn
+    m = R.axis_angle_to_matrix(aa)
+    np.testing.assert_allclose(R.axis_angle_to_matrix_np(aa), m, atol=1e-12)
+    np.testing.assert_allclose(R.axis_angle_to_matrix_np(R.matrix_to_axis_angle_np(m)), m, atol=1e-9)
+    np.testing.assert_allclose(R.matrix_to_axis_angle_np(m)[6:], R.matrix_to_axis_angle(m)[6:], atol=1e-9)
+
+
 def test_quaternion_multiply_composes_rotations():
     a, b = random_axis_angle(20, seed=2), random_axis_angle(20, seed=3)
     qa, qb = R.axis_angle_to_quaternion(a), R.axis_angle_to_quaternion(b)
