@@ -10,10 +10,10 @@ guidance on a doubled batch except for the lower-body levels, and the pad logit 
 hold bias (not in the reference) raises the logit of the previous step's token at chosen levels. The optional
 idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history). Then the
 optional runtime layers, none of them in the reference: the foot lock (`gesture.foot_lock`) holds planted feet where
-the decoded contacts planted them, the micro-motion layer (`gesture.micro_motion`) adds the micro-motion the
-codecs' training data (its gesture layer) leaves out, the face layer (`gesture.face_layer`) tops the decoded blinks
-up to a rate and smooths the brows, and the stabilizer (`gesture.stabilizer`) smooths the arms' slow drift so that
-they hold still between strokes. Each codec
+the decoded contacts planted them, the stabilizer (`gesture.stabilizer`) smooths the decoded arms' slow drift so
+that they hold still between strokes, the micro-motion layer (`gesture.micro_motion`) then adds the micro-motion
+the codecs' training data (its gesture layer) leaves out, unsmoothed as in the data, and the face layer
+(`gesture.face_layer`) tops the decoded blinks up to a rate and smooths the brows. Each codec
 stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
 at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
 so this puts the feet near the floor.
@@ -100,7 +100,7 @@ class GestureGenerator:
         self.engine.reset_streaming()
         for decoder in self.decoders.values():
             decoder.reset()
-        for layer in (self.idle_gate, self.foot_lock, self.micro_motion, self.face_layer, self.stabilizer):
+        for layer in (self.idle_gate, self.foot_lock, self.stabilizer, self.micro_motion, self.face_layer):
             if layer is not None:
                 layer.reset()
         self.generator.manual_seed(self.seed)
@@ -135,12 +135,12 @@ class GestureGenerator:
         poses, trans, expressions, contacts = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
         if self.foot_lock is not None:
             poses = self.foot_lock.step(poses, trans, contacts)
+        if self.stabilizer is not None:
+            poses = self.stabilizer.step(poses)
         if self.micro_motion is not None:
             poses = self.micro_motion.step(poses, agent_pcm)
         if self.face_layer is not None:
             expressions = self.face_layer.step(expressions)
-        if self.stabilizer is not None:
-            poses = self.stabilizer.step(poses)
         poses = poses.astype(np.float32)
         return GeneratedStep(tokens.numpy().astype(np.int32), poses, trans, expressions, va_prob, idle)
 

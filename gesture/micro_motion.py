@@ -11,14 +11,14 @@ real speaker (the README's realism section).
 So the synthetic data splits the two: each session's ``gesture_poses`` leave out the micro-motion of these joints
 (gesture.synth.config.LAYERED_MICRO_JOINTS), and the codecs and the LM learn only that gesture layer.
 The layer adds the micro-motion model of the synthetic training data (`gesture.synth`, calibration.json
-``micro_motion``, fitted on the real BEAT2 clip): per joint and axis, low-passed Gaussian noise of the fitted
-standard deviation and cutoff, times a slow log-normal gate per body part, calmer while the agent listens, softly
-limited to 2.5 standard deviations (the wrists' fitted deviations are large: unlimited, rare peaks bent them past
-130 degrees). Its size follows the agent's own audio as the data's does: 0.45x while silent, and 0.75-1.25x with
-the speech envelope (without that term, the layer on reconstructed validation sessions scored a BeatAlign 0.02
-above the data's own micro-motion model; with it, the same). It is causal (the data's Gaussian smoothing run as a
-causal FIR over a ring of white noise, one frame at a time) and seeded per session, and it post-multiplies each
-joint's local rotation, as the synthetic agent does.
+``micro_motion``, fitted on the real BEAT2 clip): per joint and axis, a slow and a quick low-passed noise of the
+fitted sizes and cutoffs (calibration.MicroNoise), times a slow log-normal gate per body part, calmer while the
+agent listens, softly limited to 2.5 standard deviations (the wrists' fitted deviations are large: unlimited, rare
+peaks bent them past 130 degrees). Its size follows the agent's own audio as the data's does: 0.45x while silent,
+and 0.75-1.25x with the speech envelope (without that term, the layer on reconstructed validation sessions scored a
+BeatAlign 0.02 above the data's own micro-motion model; with it, the same). It is causal (the data's Butterworth
+filters run one frame at a time; the gates' Gaussian smoothing as a causal FIR over a ring of white noise) and
+seeded per session, and it post-multiplies each joint's local rotation, as the synthetic agent does.
 """
 
 from __future__ import annotations
@@ -32,8 +32,9 @@ from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from gesture.config import IdleGateConfig
 from gesture.synth.agent import (ELBOW_GATE_LOG_STD, ELBOW_SIDES, MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
                                  MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, micro_gate)
-from gesture.synth.calibration import load_calibration
-from gesture.synth.tracks import NOISE_TRUNCATE_SIGMAS, noise_sigma_frames
+from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
+from gesture.synth.tracks import (NOISE_TRUNCATE_SIGMAS, lowpass_gain, lowpass_sos, lowpass_warmup_frames,
+                                  noise_sigma_frames)
 
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
 LIMIT_STDS = 2.5  # each offset is softly limited (tanh) to this many fitted stds per axis: no wrist folds over
@@ -92,6 +93,43 @@ class CausalSmoothNoise:
         return (self.kernel * self.ring[rows]).sum(0)
 
 
+class LowpassNoise:
+    """(C,) channels of unit-variance low-passed noise, one frame per `step(white)` (white: (C,) N(0, 1)).
+
+    The data's micro-motion noise (gesture.synth.tracks.lowpass_noise) run as it is made: per channel, a second-order
+    section of the Butterworth low-pass at its own cutoff (transposed direct form II), its state warmed up on white
+    noise at `reset` so that the first frames are already stationary."""
+
+    def __init__(self, cutoff_hz: Sequence[float], fps: float) -> None:
+        sos = [lowpass_sos(float(hz), fps) for hz in cutoff_hz]
+        if any(len(s) != 1 for s in sos):
+            raise ValueError("LowpassNoise runs one second-order section per channel")
+        coefficients = np.stack([s[0] for s in sos])  # (C, 6): b0 b1 b2 a0 a1 a2, a0 = 1
+        self.b, self.a = coefficients[:, :3], coefficients[:, 4:]  # (C, 3), (C, 2)
+        self.gain = np.array([lowpass_gain(s, fps, float(hz)) for s, hz in zip(sos, cutoff_hz)])  # (C,)
+        self.warmup = max(lowpass_warmup_frames(float(hz), fps) for hz in cutoff_hz)
+        self.state = np.zeros((len(sos), 2))  # (C, 2)
+
+    @property
+    def channels(self) -> int:
+        return len(self.gain)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.state[:] = 0.0
+        for white in rng.standard_normal((self.warmup, self.channels)):
+            self.filter(white)
+
+    def filter(self, white: np.ndarray) -> np.ndarray:
+        """(C,) the filter's raw output for this frame's input."""
+        out = self.b[:, 0] * white + self.state[:, 0]
+        self.state[:, 0] = self.b[:, 1] * white - self.a[:, 0] * out + self.state[:, 1]
+        self.state[:, 1] = self.b[:, 2] * white - self.a[:, 1] * out
+        return out
+
+    def step(self, white: np.ndarray) -> np.ndarray:
+        return self.filter(white) / self.gain
+
+
 class VoiceEnvelope:
     """The synthetic agent's speech envelope as its micro-motion uses it (gesture.synth.agent: speech_envelope, then
     micro_motion_scale's smoothing), causally: each frame's RMS over the loud level, clipped to [0, 1], then a
@@ -122,15 +160,18 @@ class MicroMotion:
     session. As in the synthetic data, its size follows the agent's own audio: calmer while it is silent, livelier
     with its speech envelope.
 
-    `params`: joint -> ((3,) std in rad per local axis, cutoff in Hz); `scale` multiplies every std."""
+    `params`: joint -> its noise (gesture.synth.calibration.MicroNoise); `scale` multiplies every std."""
 
-    def __init__(self, params: Mapping[int, tuple[np.ndarray, float]], fps: float, seed: int = 0,
+    def __init__(self, params: Mapping[int, MicroNoise], fps: float, seed: int = 0,
                  scale: float = 1.0, listening_scale: float = MICRO_LISTENING) -> None:
         if not params:
             raise ValueError("micro-motion needs at least one joint")
         self.joints = sorted(params)
-        self.std = scale * np.stack([np.asarray(params[j][0], np.float64) for j in self.joints])  # (J, 3)
-        self.noise = CausalSmoothNoise(np.repeat([params[j][1] for j in self.joints], 3), fps)  # 3 axes per joint
+        self.std = scale * np.stack([np.asarray(params[j].std_rad, np.float64) for j in self.joints])  # (J, 3)
+        self.fast_ratio = np.array([params[j].fast_ratio for j in self.joints])  # (J,)
+        slow_hz = np.repeat([params[j].cutoff_hz for j in self.joints], 3)  # 3 axes per joint
+        quick_hz = np.full_like(slow_hz, MICRO_FAST_HZ)
+        self.noise = LowpassNoise(np.concatenate([slow_hz, quick_hz]), fps)  # channels: slow, then quick
         self.gate = CausalSmoothNoise(np.full(len(MICRO_PARTS), MICRO_GATE_HZ), fps)  # one per body part
         part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
         self.part = np.array([part_of.get(j, 0) for j in self.joints])  # (J,)
@@ -159,12 +200,13 @@ class MicroMotion:
         turn = self.listening_scale + (1 - self.listening_scale) * self.speaking
         level = turn * (1 + MICRO_ENVELOPE_GAIN * (self.envelope.step(rms) - 0.5))
         gate = micro_gate(self.gate.step(self.rng.standard_normal(self.gate.channels)))[self.part]  # (J,)
-        noise = self.noise.step(self.rng.standard_normal(self.noise.channels)).reshape(-1, 3)  # (J, 3)
+        slow, fast = self.noise.step(self.rng.standard_normal(self.noise.channels)).reshape(2, -1, 3)  # (J, 3) each
+        noise = slow + self.fast_ratio[:, None] * fast
         if self.elbow_gate is not None:
             own = self.elbow_gate.step(self.rng.standard_normal(self.elbow_gate.channels))  # (elbows,)
             gate[self.elbows] = micro_gate(own, ELBOW_GATE_LOG_STD)
         offset = noise * self.std * (level * gate)[:, None]
-        limit = LIMIT_STDS * self.std
+        limit = LIMIT_STDS * self.std * np.sqrt(1 + self.fast_ratio**2)[:, None]  # the two noises' joint std
         return limit * np.tanh(offset / np.maximum(limit, 1e-12))
 
     def step(self, poses: np.ndarray, agent_pcm: np.ndarray | None) -> np.ndarray:

@@ -4,6 +4,7 @@ into the generator and the `gesture.micro_motion` config section."""
 import numpy as np
 import pytest
 import torch
+from scipy.signal import sosfilt
 
 from core.config import ConfigError
 from core.timing import MOTION_FPS
@@ -11,9 +12,10 @@ from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle
 from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.micro_motion import SPEAKING_RMS, CausalSmoothNoise, VoiceEnvelope, calibrated_micro_motion, frame_rms
+from gesture.micro_motion import (SPEAKING_RMS, CausalSmoothNoise, LowpassNoise, VoiceEnvelope, calibrated_micro_motion,
+                                  frame_rms)
 from gesture.process import build_micro_motion
-from gesture.synth.tracks import smooth_noise
+from gesture.synth.tracks import lowpass_noise, lowpass_sos, smooth_noise
 
 torch.set_num_threads(1)
 JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)
@@ -41,6 +43,27 @@ def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
     np.testing.assert_allclose(causal.std(0), 1.0, rtol=0.05)
     speed = lambda x: np.abs(np.diff(x, axis=0)).mean(0)  # noqa: E731
     np.testing.assert_allclose(speed(causal), speed(gaussian), rtol=0.1)
+
+
+def test_lowpass_noise_runs_the_datas_filter_one_frame_at_a_time():
+    cutoffs = (0.35, 3.0)
+    white = np.random.default_rng(0).standard_normal((400, 2))
+    noise = LowpassNoise(cutoffs, MOTION_FPS)  # zero state: exactly scipy's filter of the same white noise
+    streamed = np.stack([noise.step(w) for w in white])  # (T, 2)
+    for k, hz in enumerate(cutoffs):
+        np.testing.assert_allclose(streamed[:, k] * noise.gain[k], sosfilt(lowpass_sos(hz, MOTION_FPS), white[:, k]),
+                                   atol=1e-12)
+    rng = np.random.default_rng(1)
+    many = LowpassNoise(np.repeat(cutoffs, 4000), MOTION_FPS)
+    many.reset(rng)  # warmed up: already stationary at its first frame
+    first = many.step(rng.standard_normal(many.channels)).reshape(2, -1)
+    np.testing.assert_allclose(first.std(1), 1.0, rtol=0.05)
+    noise.reset(rng)  # unit variance and the data's speed
+    causal = np.stack([noise.step(w) for w in rng.standard_normal((60_000, 2))])
+    data = np.concatenate([lowpass_noise(rng, 60_000, MOTION_FPS, hz, 1) for hz in cutoffs], 1)
+    np.testing.assert_allclose(causal.std(0), 1.0, rtol=0.05)
+    speed = lambda x: np.abs(np.diff(x, axis=0)).mean(0)  # noqa: E731
+    np.testing.assert_allclose(speed(causal), speed(data), rtol=0.05)
 
 
 @pytest.mark.parametrize("joints", [JOINTS, JOINTS + (18, 19)], ids=["layered", "with elbows (own gates)"])

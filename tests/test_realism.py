@@ -42,6 +42,21 @@ def test_group_stats_see_stillness_speed_and_spread():
     assert stats["spine"]["speed_median"] == 0.0 and stats["spine"]["diversity"] == 0.0
 
 
+def test_fast_power_share_tells_quick_from_slow_motion():
+    t = np.arange(40 * FPS) / FPS
+    poses = np.zeros((len(t), 55, 3))
+    poses[:, 20, 0] = 0.3 * np.sin(2 * np.pi * 0.5 * t)  # a wrist swings slowly ...
+    poses[:, 20, 1] = 0.0375 * np.sin(2 * np.pi * 4.0 * t)  # ... with a quick tremor of equal speed (0.3 x 0.5 Hz)
+    poses[:, 21, 0] = 0.3 * np.sin(2 * np.pi * 0.5 * t)  # the other only slowly
+    poses[:, 3, 2] = 0.02 * np.sin(2 * np.pi * 3.0 * t)  # the spine only quickly
+    shares = R.fast_power_shares(poses)
+    hz, power = R.velocity_power(poses)
+    per_joint = R.fast_share(hz, power)  # (55,)
+    assert per_joint[20] == pytest.approx(0.5, abs=0.03) and per_joint[21] < 0.01 and per_joint[3] > 0.99
+    assert shares["wrists"]["fast_power_share"] == pytest.approx(1 / 3, abs=0.03)  # the quick part: 1 of 3 equal powers
+    assert shares["spine"]["fast_power_share"] > 0.99
+
+
 def test_strokes_are_counted_one_per_movement():
     n = 20 * FPS
     wrist = np.zeros((n, 3))

@@ -26,7 +26,9 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
   metres, and the overlap of the two histograms, 1 = the same distribution);
 - the feet: the fraction of frames an ankle is planted (moving over the floor slower than ``PLANTED_MPS``) and the
   90th percentile of its speed (steps);
-- blinks, brow raises and smiles per minute (events of the avatar's expression activations, ``FACE_EVENTS``).
+- blinks, brow raises and smiles per minute (events of the avatar's expression activations, ``FACE_EVENTS``);
+- per joint group, the share of its angular velocity's power at ``FAST_BAND_HZ`` (``spectra``: how much of its
+  motion is quick small movement rather than slow drift; the real speaker's spine has about a quarter there).
 
 Every scalar is also given as a ratio to the real clip's. ``--out`` gets ``realism.json``, ``speeds.png`` (the
 speed distributions, real against generated) and ``side_by_side.mp4`` (the real clip and the agent speaking the
@@ -53,7 +55,8 @@ from core.errors import DataError
 from core.threads import limit_threads
 from core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
-from gesture.body.rotation import axis_angle_to_matrix, axis_angle_to_quaternion, quaternion_to_axis_angle
+from gesture.body.rotation import (axis_angle_to_matrix, axis_angle_to_quaternion, matrix_to_axis_angle_np,
+                                   quaternion_to_axis_angle)
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.eval import metrics as M
 
@@ -73,6 +76,7 @@ JOINT_GROUPS = {
 RUNTIME_LAYERS = ("micro_motion", "face", "foot_lock", "stabilizer")  # config sections of the layers after decoding
 GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four
 STILL_RAD_S = 0.2
+FAST_BAND_HZ = (2.0, 8.0)
 EDGE_S = 2.0
 PELVIS, WRISTS, ANKLES = 0, (20, 21), (7, 8)
 PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
@@ -150,6 +154,28 @@ def group_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
             "diversity": float(diversity[list(joints)].mean()),
         }
     return out
+
+
+def velocity_power(poses: np.ndarray, fps: float = MOTION_FPS) -> tuple[np.ndarray, np.ndarray]:
+    """(T, J, 3) axis-angle -> frequencies (F,) in Hz and (F, J) the power spectrum of each joint's angular velocity
+    (local frame, summed over its axes)."""
+    rot = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
+    velocity = matrix_to_axis_angle_np(np.swapaxes(rot[:-1], -1, -2) @ rot[1:]) * fps  # (T-1, J, 3) rad/s
+    power = np.square(np.abs(np.fft.rfft(velocity - velocity.mean(0), axis=0))).sum(-1)  # (F, J)
+    return np.fft.rfftfreq(len(velocity), 1.0 / fps), power
+
+
+def fast_share(hz: np.ndarray, power: np.ndarray) -> np.ndarray:
+    """(F,), (F, ...) -> (...) the share of the power within ``FAST_BAND_HZ``."""
+    fast = (hz >= FAST_BAND_HZ[0]) & (hz < FAST_BAND_HZ[1])
+    return power[fast].sum(0) / np.maximum(power.sum(0), 1e-12)
+
+
+def fast_power_shares(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
+    """Per joint group: the share of its angular velocity's power (summed over its joints) within ``FAST_BAND_HZ``."""
+    hz, power = velocity_power(poses, fps)
+    return {name: {"fast_power_share": float(fast_share(hz, power[:, list(joints)].sum(1)))}
+            for name, joints in JOINT_GROUPS.items()}
 
 
 def group_speed_samples(poses: np.ndarray, fps: float = MOTION_FPS) -> dict[str, np.ndarray]:
@@ -231,7 +257,8 @@ def describe(clip: M.MotionClip, skeleton: Skeleton) -> dict:
     poses = inner(clip.poses)
     joints = body_frame_joints(poses, skeleton)
     return {"groups": group_stats(poses), "hands": hand_stats(joints),
-            "feet": feet_stats(poses, inner(clip.trans), skeleton), "face": face_stats(inner(clip.expressions))}
+            "feet": feet_stats(poses, inner(clip.trans), skeleton), "face": face_stats(inner(clip.expressions)),
+            "spectra": fast_power_shares(poses)}
 
 
 def protocol_metrics(clip: M.MotionClip, real: M.MotionClip, speech, mean_speed: np.ndarray) -> dict:
@@ -352,7 +379,7 @@ def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
         protocol = protocol_metrics(clip, real, speech, mean_speed)
         report["real"]["protocol"] = {"l1div": protocol["real_l1div"], "beat_align": protocol["real_beat_align"]}
         entry = dict(desc, protocol={k: protocol[k] for k in ("l1div", "beat_align", "fgd_kinetic")})
-        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "feet", "face")}, real_desc)
+        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "feet", "face", "spectra")}, real_desc)
         entry["ratios"]["l1div"] = protocol["l1div"] / protocol["real_l1div"]
         entry["beat_align_minus_real"] = protocol["beat_align"] - protocol["real_beat_align"]
         entry["hand_height_overlap"] = float(np.minimum(height_histogram(body_frame_joints(inner(clip.poses), skeleton)),
@@ -442,6 +469,9 @@ def format_table(report: dict) -> str:
         for key in report[names[0]]["ratios"][section]:
             row = [report[n]["ratios"][section][key] for n in names]
             lines.append(f"{key:30s}" + "".join(f"{'none':>32s}" if v is None else f"{v:32.2f}" for v in row))
+    for group in JOINT_GROUPS:
+        row = [report[n]["ratios"]["spectra"][group]["fast_power_share"] for n in names]
+        lines.append(f"{group + ' fast_power_share':30s}" + "".join(f"{v:32.2f}" for v in row))
     lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:32.2f}" for n in names))
     lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:32.2f}" for n in names))
     lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:32.3f}" for n in names))

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import math
 import sys
@@ -46,7 +47,7 @@ from gesture.codec.evaluation import reconstruct
 from gesture.codec.model import GestureCodec
 from gesture.config import GestureConfig
 from gesture.data.audio import load_audio
-from gesture.data.beat2 import GESTURE_POSES_KEY, Take, find_takes, read_motion
+from gesture.data.beat2 import Take, find_takes, read_motion
 from gesture.data.chunks import motion_at_fps
 from gesture.eval import metrics as M
 from gesture.generator import GestureGenerator
@@ -184,27 +185,36 @@ class HeldoutSession:
 
 
 HELDOUT_DATA_SEED = 0  # scripts/train_default.sh's data seed; its test split is held out of training
+GENERATOR_STAMP = "generator.sha256"  # in the held-out directory: the generator_fingerprint that made it
+
+
+def generator_fingerprint() -> str:
+    """SHA-256 of the synthetic generator's code and calibration (gesture/synth): held-out sessions made by another
+    generator are another ground truth."""
+    digest = hashlib.sha256()
+    synth = REPO / "gesture" / "synth"
+    for path in sorted(synth.glob("*.py")) + [synth / "calibration.json"]:
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
 
 
 def ensure_heldout(root: Path, n_sessions: int) -> None:
     """Generate held-out sessions 10, 20, ... of the training data's seed into `root` unless it already holds
-    `n_sessions` test takes with their gesture layer (older generators wrote none)."""
+    `n_sessions` test takes made by the current generator (``GENERATOR_STAMP``)."""
     from gesture.synth.config import SynthConfig
     from gesture.synth.build import SESSION_MINUTES, generate_sessions, held_out_period
 
+    stamp = root / GENERATOR_STAMP
     takes = _test_takes(root) if root.is_dir() else []
-    if len(takes) >= n_sessions and all(_has_gesture_layer(t) for t in takes[:n_sessions]):
+    current = stamp.is_file() and stamp.read_text().strip() == generator_fingerprint()
+    if current and len(takes) >= n_sessions:
         return
     cfg = SynthConfig()
     period = held_out_period(cfg)
     numbers = range(period, period * (n_sessions + 1), period)
     ids = generate_sessions(cfg, root, HELDOUT_DATA_SEED, numbers, SESSION_MINUTES, jobs=2)
     (root / "train_test_split.csv").write_text("id,type\n" + "".join(f"{i},test\n" for i in ids))
-
-
-def _has_gesture_layer(take: Take) -> bool:
-    with np.load(take.motion_path, allow_pickle=False) as data:
-        return GESTURE_POSES_KEY in data.files
+    stamp.write_text(generator_fingerprint() + "\n")
 
 
 def _session_order(take: Take) -> list:

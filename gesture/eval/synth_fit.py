@@ -3,12 +3,13 @@
     python -m gesture.eval.synth_fit [--clip ../shared/data/beat2/2_scott_0_1_1] [--seeds 0 1 2] [--iterations 3]
 
 The synthetic agent is driven by the clip's own speech and word timings (gesture.synth.recording). Per
-joint of the torso, neck, head and arms, the fit matches two marginal statistics of the clip (never its frames):
-its pose diversity (the mean angle of its local rotation from its mean, gesture.eval.realism) and its median angular
-speed (rad/s). It starts from the variance per local axis that the planned motion lacks (real - planned, floored
-at a quarter of the real std) and the cutoff at which noise of that size has the real median speed, then scales
-the noise (per joint) and its cutoff multiplicatively from the measured synthetic motion (mean over ``--seeds``),
-``--iterations`` times.
+joint of the torso, neck, head and arms, the fit matches three marginal statistics of the clip (never its frames):
+its pose diversity (the mean angle of its local rotation from its mean, gesture.eval.realism), its median angular
+speed (rad/s) and the share of its angular velocity's power at 2-8 Hz (gesture.eval.realism.fast_share). It starts
+from the variance per local axis that the planned motion lacks (real - planned, floored at a quarter of the real
+std), the cutoff at which noise of that size has the real median speed and a quick noise of INITIAL_FAST_RATIO, then
+scales the noise (per joint), its cutoff and the quick noise's ratio multiplicatively from the measured synthetic
+motion (mean over ``--seeds``), ``--iterations`` times (calibration.MicroNoise).
 """
 
 from __future__ import annotations
@@ -24,14 +25,16 @@ import numpy as np
 from core.threads import limit_threads
 from core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
-from gesture.synth.calibration import CALIBRATION_JSON, load_calibration, to_json
+from gesture.synth.calibration import CALIBRATION_JSON, MicroNoise, load_calibration, to_json
 from gesture.synth.recording import motion_for_recording, recognised_words
-from gesture.synth.tracks import smooth_noise
+from gesture.synth.tracks import lowpass_noise
 
 MICRO_JOINTS = (0, 3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21)  # pelvis, spine, neck, collars, head, arms
 STD_FLOOR = 0.25  # of the real std: every joint keeps some micro-motion
 MAX_STEP = 2.0  # largest multiplicative correction per iteration
 PROBE_HZ = 1.0
+INITIAL_FAST_RATIO = 0.3  # the quick noise's size, relative to the slow one's, before the fit
+MAX_FAST_RATIO = 3.0
 MAX_CUTOFF_HZ = 3.0  # faster noise is jitter, not motion (a joint whose planned motion is already too spread, the
 # shoulders, would otherwise buy its median speed with it)
 REAL_CLIP = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "2_scott_0_1_1"
@@ -47,47 +50,52 @@ def rotation_residuals(poses: np.ndarray) -> np.ndarray:
     return matrix_to_axis_angle(np.swapaxes(mean, -1, -2)[None] @ rot)
 
 
-def joint_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(T, 55, 3) -> of MICRO_JOINTS: std per axis (J, 3), pose diversity (J,) and median angular speed (J,)."""
-    from gesture.eval.realism import angular_speeds, inner, pose_diversity
+def joint_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> tuple[np.ndarray, ...]:
+    """(T, 55, 3) -> of MICRO_JOINTS: std per axis (J, 3), pose diversity (J,), median angular speed (J,) and the
+    share of quick motion (J,; gesture.eval.realism.fast_share)."""
+    from gesture.eval.realism import angular_speeds, fast_share, inner, pose_diversity, velocity_power
 
     poses = inner(poses[:, list(MICRO_JOINTS)])
-    return rotation_residuals(poses).std(0), pose_diversity(poses), np.median(angular_speeds(poses, fps), axis=0)
+    return (rotation_residuals(poses).std(0), pose_diversity(poses), np.median(angular_speeds(poses, fps), axis=0),
+            fast_share(*velocity_power(poses, fps)))
 
 
 def noise_median_speed(std: np.ndarray, hz: float, n: int = 4000, fps: float = MOTION_FPS) -> float:
-    """Median angular speed (rad/s) of the micro-motion noise alone (std (3,) rad, cutoff ``hz``)."""
+    """Median angular speed (rad/s) of a slow micro-motion noise alone (std (3,) rad, cutoff ``hz``)."""
     from gesture.eval.realism import angular_speeds
 
-    offsets = smooth_noise(np.random.default_rng(0), n, fps, hz, 3) * std[None]  # (n, 3)
+    offsets = lowpass_noise(np.random.default_rng(0), n, fps, hz, 3) * std[None]  # (n, 3)
     return float(np.median(angular_speeds(offsets[:, None], fps)))
 
 
-def synthetic_stats(wav: Path, words, seeds, params) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def synthetic_stats(wav: Path, words, seeds, params) -> tuple[np.ndarray, ...]:
     """joint_stats of the synthetic agent driven by the recording, averaged over ``seeds``."""
     stats = [joint_stats(motion_for_recording(wav, seed=seed, words=words, micro=params)[1].poses) for seed in seeds]
-    return tuple(np.mean([s[k] for s in stats], 0) for k in range(3))
+    return tuple(np.mean([s[k] for s in stats], 0) for k in range(len(stats[0])))
 
 
-def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print) -> dict[int, tuple[np.ndarray, float]]:
-    """Per joint of MICRO_JOINTS: ((3,) std rad, cutoff Hz); ``words``: the clip's timed words (else recognised)."""
+def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print) -> dict[int, MicroNoise]:
+    """Per joint of MICRO_JOINTS, its noise; ``words``: the clip's timed words (else recognised)."""
     from gesture.eval.realism import load_clip
 
     wav = clip.with_suffix(".wav")
-    real_std, real_div, real_med = joint_stats(load_clip(clip.with_suffix(".npz")).poses)
+    real_std, real_div, real_med, real_fast = joint_stats(load_clip(clip.with_suffix(".npz")).poses)
     words = recognised_words(wav) if words is None else words
-    base_std, _, _ = synthetic_stats(wav, words, seeds, {})
+    base_std = synthetic_stats(wav, words, seeds, {})[0]
     std = np.sqrt(np.maximum(real_std**2 - base_std**2, (STD_FLOOR * real_std) ** 2))  # (J, 3)
     hz = np.array([PROBE_HZ * real_med[k] / noise_median_speed(std[k], PROBE_HZ) for k in range(len(MICRO_JOINTS))])
     hz = np.minimum(hz, MAX_CUTOFF_HZ)
+    fast = np.full(len(MICRO_JOINTS), INITIAL_FAST_RATIO)
     for it in range(iterations):
-        params = {j: (std[k], float(hz[k])) for k, j in enumerate(MICRO_JOINTS)}
-        _, got_div, got_med = synthetic_stats(wav, words, seeds, params)
+        params = {j: MicroNoise(std[k], float(hz[k]), float(fast[k])) for k, j in enumerate(MICRO_JOINTS)}
+        _, got_div, got_med, got_fast = synthetic_stats(wav, words, seeds, params)
         log(f"iteration {it}: diversity ratio {np.round(got_div / real_div, 2).tolist()}, "
-            f"median speed ratio {np.round(got_med / real_med, 2).tolist()}")
-        std = std * np.clip(real_div / got_div, 1 / MAX_STEP, MAX_STEP)[:, None]
+            f"median speed ratio {np.round(got_med / real_med, 2).tolist()}, "
+            f"quick share ratio {np.round(got_fast / real_fast, 2).tolist()}")
+        std = np.maximum(std * np.clip(real_div / got_div, 1 / MAX_STEP, MAX_STEP)[:, None], STD_FLOOR * real_std)
         hz = np.minimum(hz * np.clip(real_med / got_med, 1 / MAX_STEP, MAX_STEP), MAX_CUTOFF_HZ)
-    return {j: (std[k], float(hz[k])) for k, j in enumerate(MICRO_JOINTS)}
+        fast = np.minimum(fast * np.clip(real_fast / got_fast, 1 / MAX_STEP, MAX_STEP), MAX_FAST_RATIO)
+    return {j: MicroNoise(std[k], float(hz[k]), float(fast[k])) for k, j in enumerate(MICRO_JOINTS)}
 
 
 def main(argv=None) -> int:

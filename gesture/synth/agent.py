@@ -5,8 +5,8 @@ posture (stance, weight shifts, sway, breathing) -> torso FK -> arm IK to the pl
 (gestures.py) with palm twist and wrist flexion -> leg IK to the planted feet -> fingers (hands.py) ->
 head (speaking nods on stressed words, per-sentence tilts/turns, listening nods at the user's pauses)
 -> face (jaw from the agent's speech envelope, blinks, brows, smiles, mouth shapes; face.py) -> micro-motion:
-band-limited rotation noise on the torso, neck, head and arm joints (real speakers are never still), its size
-and bandwidth per joint fitted to the real clip (calibration.json ``micro_motion``), louder with the agent's
+low-passed rotation noise on the torso, neck, head and arm joints (real speakers are never still), slow and quick,
+its sizes and bandwidth per joint fitted to the real clip (calibration.json ``micro_motion``), louder with the agent's
 own speech and calmer while it listens. The collars, elbows and wrists end within soft range-of-motion limits
 (``JOINT_SOFT_LIMITS_RAD``, at the real clip's tail).
 The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels, and
@@ -25,7 +25,7 @@ from scipy.special import ndtr
 from core.body import NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
 from gesture.body.skeleton import Skeleton, forward_kinematics
-from gesture.synth.calibration import load_calibration
+from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig
 from gesture.synth.conversation import AGENT, USER, MIN_PAUSE_S, Conversation, activity_frames
 from gesture.synth.face import JAW_OPEN_RAD, blink_track, expressions_from_activations
@@ -33,7 +33,7 @@ from gesture.synth.gestures import ArmTracks, plan_arms
 from gesture.synth.hands import blend_hands
 from gesture.synth.ik import TwoBoneChain
 from gesture.synth.posture import Posture, plan_posture
-from gesture.synth.tracks import KeyTrack, add_bump, smooth_noise
+from gesture.synth.tracks import KeyTrack, add_bump, lowpass_noise, smooth_noise
 
 LISTENING_ENERGY = 0.55  # relative liveliness while listening (1 while speaking)
 MICRO_LISTENING = 0.45  # micro-motion while listening, relative to speaking
@@ -209,13 +209,20 @@ def forearm_forward_scale(planned: np.ndarray, offset: np.ndarray, sign: float) 
     return gaussian_filter1d(minimum_filter1d(share, 9), 1.5)
 
 
-def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int, tuple[np.ndarray, float]],
+def micro_noise(rng: np.random.Generator, n: int, fps: float, noise: MicroNoise) -> np.ndarray:
+    """(T, 3) one joint's micro-motion noise before its gate (calibration.MicroNoise)."""
+    slow = lowpass_noise(rng, n, fps, noise.cutoff_hz, 3)
+    fast = lowpass_noise(rng, n, fps, MICRO_FAST_HZ, 3)
+    return (slow + noise.fast_ratio * fast) * noise.std_rad[None]
+
+
+def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int, MicroNoise],
                  scale: np.ndarray) -> dict[int, np.ndarray]:
-    """Per joint, (T, 3) local rotation offsets: smooth noise of std ``params[j][0]`` (rad per axis) and cutoff
-    ``params[j][1]`` (Hz), times ``scale`` (T,) and its body part's gate, or the elbow's own."""
+    """Per joint, (T, 3) local rotation offsets: its ``micro_noise`` times ``scale`` (T,) and its body part's gate,
+    or the elbow's own."""
     part_gates = micro_gate(smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(MICRO_PARTS)))  # (T, parts)
     part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
-    noise = {j: smooth_noise(rng, n, fps, hz, 3) * std[None] for j, (std, hz) in sorted(params.items())}  # (T, 3) each
+    noise = {j: micro_noise(rng, n, fps, params[j]) for j in sorted(params)}  # (T, 3) each
     gates = {j: part_gates[:, part_of.get(j, 0)] for j in noise}
     elbows = sorted(set(ELBOW_SIDES) & set(noise))  # drawn last: every other joint's noise is as it was without them
     if elbows:
@@ -303,7 +310,7 @@ class BodySolver:
 
 def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Conversation,
                             skeleton: Skeleton | None = None,
-                            micro: dict[int, tuple[np.ndarray, float]] | None = None) -> AgentMotion:
+                            micro: dict[int, MicroNoise] | None = None) -> AgentMotion:
     """The agent's motion; ``micro`` overrides the calibrated micro-motion (``{}``: none, as the fit needs)."""
     skeleton = skeleton or Skeleton.default()
     fps = cfg.motion_fps

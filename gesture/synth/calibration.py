@@ -10,10 +10,10 @@ What is measured (at the clip's own frame rate; rotations averaged as quaternion
 - ``wrist_chest_m``: percentiles 5/50/95 of each wrist's position in the chest (spine3) frame, which bound the
   gesture space; the median is the hands' rest position;
 - ``wrist_speed_mps``: the mean wrist speed, a reference for the synthetic motion's energy;
-- ``micro_motion``: per joint of the torso, neck, head and arms, the standard deviation (rad, per local axis) and
-  cutoff (Hz) of the band-limited rotation noise that the agent's joints carry on top of its planned motion
-  (real speakers are never still). Fitted by ``python -m gesture.eval.synth_fit`` so that the synthetic agent,
-  driven by the clip's own speech, matches the clip's per-joint rotation spread and median angular speed.
+- ``micro_motion``: per joint of the torso, neck, head and arms, the low-passed rotation noise that the agent's
+  joints carry on top of its planned motion (real speakers are never still; ``MicroNoise``). Fitted by
+  ``python -m gesture.eval.synth_fit`` so that the synthetic agent, driven by the clip's own speech, matches the
+  clip's per-joint rotation spread, median angular speed and share of quick motion.
 """
 
 from __future__ import annotations
@@ -39,13 +39,29 @@ WRIST_JOINTS = (20, 21)
 PERCENTILES = (5, 50, 95)
 
 
+MICRO_FAST_HZ = 3.0  # the corner of each joint's quick micro-motion (MicroNoise.fast_ratio)
+
+
+@dataclass(frozen=True)
+class MicroNoise:
+    """One joint's micro-motion, per local axis: a slow noise of ``std_rad`` low-passed at ``cutoff_hz`` plus a quick
+    one of ``fast_ratio`` times that size low-passed at MICRO_FAST_HZ (both gesture.synth.tracks.lowpass_noise).
+
+    Real joints move at every rate: a speaker's spine has a third of its angular velocity's power at 2-8 Hz, his
+    wrists half. One noise fitted to the joint's spread and median speed leaves that band nearly empty."""
+
+    std_rad: np.ndarray  # (3,)
+    cutoff_hz: float
+    fast_ratio: float = 0.0
+
+
 @dataclass(frozen=True)
 class Calibration:
     base_local_aa: dict[int, np.ndarray]  # joint -> (3,) axis-angle
     relaxed_hand_aa: np.ndarray  # (30, 3) joints 25..54
     wrist_chest_m: np.ndarray  # (2 sides L/R, 3 percentiles, 3 xyz) in the chest frame
     wrist_speed_mps: float
-    micro_motion: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)  # joint -> ((3,) std rad, Hz)
+    micro_motion: dict[int, MicroNoise] = field(default_factory=dict)
 
 
 def _mean_rotation(aa: np.ndarray) -> np.ndarray:
@@ -83,8 +99,9 @@ def to_json(cal: Calibration) -> dict:
         "relaxed_hand_aa": np.round(cal.relaxed_hand_aa, 5).tolist(),
         "wrist_chest_m": np.round(cal.wrist_chest_m, 5).tolist(),
         "wrist_speed_mps": round(cal.wrist_speed_mps, 5),
-        "micro_motion": {str(j): {"std_rad": np.round(std, 5).tolist(), "cutoff_hz": round(float(hz), 4)}
-                         for j, (std, hz) in sorted(cal.micro_motion.items())},
+        "micro_motion": {str(j): {"std_rad": np.round(m.std_rad, 5).tolist(), "cutoff_hz": round(float(m.cutoff_hz), 4),
+                                  "fast_ratio": round(float(m.fast_ratio), 4)}
+                         for j, m in sorted(cal.micro_motion.items())},
     }
 
 
@@ -94,7 +111,8 @@ def from_json(doc: dict) -> Calibration:
         relaxed_hand_aa=np.asarray(doc["relaxed_hand_aa"], np.float64),
         wrist_chest_m=np.asarray(doc["wrist_chest_m"], np.float64),
         wrist_speed_mps=float(doc["wrist_speed_mps"]),
-        micro_motion={int(j): (np.asarray(v["std_rad"], np.float64), float(v["cutoff_hz"]))
+        micro_motion={int(j): MicroNoise(np.asarray(v["std_rad"], np.float64), float(v["cutoff_hz"]),
+                                         float(v["fast_ratio"]))
                       for j, v in doc.get("micro_motion", {}).items()},
     )
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from gesture.data.audio import load_audio
 from gesture.synth.agent import AgentMotion, synthesize_agent_motion
+from gesture.synth.calibration import MicroNoise
 from gesture.synth.config import SynthConfig
 from gesture.synth.conversation import (AGENT, ENVELOPE_HOP_S, STROKE_SEARCH_S, USER, Conversation, SpokenWord, Turn,
                                         envelope, is_stressed)
@@ -76,7 +77,7 @@ def monologue(pcm: np.ndarray, sample_rate_hz: int, words: list[TimedWord]) -> C
 
 def motion_for_recording(path: Path | str, seed: int = 0, cfg: SynthConfig | None = None,
                          words: list[TimedWord] | None = None,
-                         micro: dict[int, tuple[np.ndarray, float]] | None = None) -> tuple[Conversation, AgentMotion]:
+                         micro: dict[int, MicroNoise] | None = None) -> tuple[Conversation, AgentMotion]:
     """The synthetic agent's motion (25 fps) while it says the recording at ``path`` (``words``: its timed words,
     recognised when not given; ``micro``: see ``synthesize_agent_motion``)."""
     cfg = cfg or SynthConfig()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
+from scipy.signal import butter, sosfilt
 
 MIN_KEY_SPACING_S = 0.04
 
@@ -76,6 +77,34 @@ def smooth_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz:
     x = gaussian_filter1d(rng.standard_normal((n_frames + 2 * pad, dim)), sigma, axis=0, mode="wrap",
                           truncate=NOISE_TRUNCATE_SIGMAS)[pad:-pad]
     return x / np.maximum(x.std(0, keepdims=True), 1e-9)
+
+
+LOWPASS_ORDER = 2  # real joint rotations fall off as a 2nd-order low-pass above their corner, not as a Gaussian
+LOWPASS_WARMUP_TAUS = 12  # white noise run through the filter first, in time constants: the output starts stationary
+
+
+def lowpass_sos(cutoff_hz: float, fps: float) -> np.ndarray:
+    """The micro-motion noise filter: a Butterworth low-pass of LOWPASS_ORDER at ``cutoff_hz``, as second-order
+    sections."""
+    return butter(LOWPASS_ORDER, cutoff_hz, fs=fps, output="sos")
+
+
+def lowpass_gain(sos: np.ndarray, fps: float, cutoff_hz: float) -> float:
+    """The filter's output std for unit white noise (its impulse response's energy, square-rooted)."""
+    impulse = np.zeros(lowpass_warmup_frames(cutoff_hz, fps))
+    impulse[0] = 1.0
+    return float(np.sqrt(np.square(sosfilt(sos, impulse)).sum()))
+
+
+def lowpass_warmup_frames(cutoff_hz: float, fps: float) -> int:
+    return int(np.ceil(LOWPASS_WARMUP_TAUS * fps / (2 * np.pi * cutoff_hz)))
+
+
+def lowpass_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1) -> np.ndarray:
+    """(n_frames, dim) white noise through ``lowpass_sos``, unit standard deviation per column in expectation."""
+    sos, warmup = lowpass_sos(cutoff_hz, fps), lowpass_warmup_frames(cutoff_hz, fps)
+    out = sosfilt(sos, rng.standard_normal((warmup + n_frames, dim)), axis=0)[warmup:]
+    return out / lowpass_gain(sos, fps, cutoff_hz)
 
 
 def bump(times: np.ndarray, centre_s: float, rise_s: float, hold_s: float, fall_s: float) -> np.ndarray:
