@@ -5,13 +5,14 @@ from __future__ import annotations
 import ctypes
 import importlib
 import logging
+import multiprocessing as mp
 import os
 import shutil
 import signal
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 from agent.sections import AppConfig
 from agent.stage import StageRunner, Topology
@@ -27,6 +28,7 @@ COMPONENT_FACTORIES = {
 }
 EXIT_STARTUP_FAILED = 3
 PR_SET_PDEATHSIG = 1
+SUPERVISOR_DIED = signal.SIGUSR1  # PR_SET_PDEATHSIG's signal; unlike SIGTERM, nothing else sends it
 
 
 @dataclass(frozen=True)
@@ -51,9 +53,8 @@ def load_factory(path: str) -> Callable[..., Any]:
 
 
 def stage_main(launch: StageLaunch) -> None:
-    """Run one stage until STOP, SIGTERM or the end of the stream."""
-    die_with_parent()
-    supervisor_pid = os.getppid()
+    """Run one stage until STOP, SIGTERM, the supervisor's death or the end of the stream."""
+    supervisor = SupervisorWatch(launch.ipc_dir)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the supervisor decides
     redirect_output(launch.log_path)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
@@ -70,34 +71,53 @@ def stage_main(launch: StageLaunch) -> None:
     except Exception:
         log.exception("failed to start")
         sys.exit(EXIT_STARTUP_FAILED)
+    supervisor.stop = runner.request_stop
     signal.signal(signal.SIGTERM, lambda *_: runner.request_stop())
-    try:
-        runner.run()
-    finally:
-        remove_ipc_dir_if_orphaned(launch.ipc_dir, supervisor_pid)
+    runner.run()
     log.info("stopped")
 
 
-def remove_ipc_dir_if_orphaned(ipc_dir: Path, supervisor_pid: int) -> None:
-    """The supervisor was killed (it cannot clean up): the run's private socket directory goes with its stages.
+class SupervisorWatch:
+    """Linux: act on the supervisor's death, even by SIGKILL, so no process of the run outlives it or its sockets.
 
-    Only a private `ecas-*` directory is removed, never a shared one such as a worker's temp directory.
+    The kernel sends PR_SET_PDEATHSIG's signal when the supervisor's main thread (which started this process)
+    exits; its other threads (ZeroMQ's) may still be alive then, and getppid() names the supervisor until they are
+    gone, so only the signal says that it died. The signal is one of its own: a SIGTERM may come from a
+    supervisor that lives on. On it the run's private socket directory is removed, then `stop` ends the
+    process's work, or the process exits at once while it is still starting (`stop` unset). Each process of the
+    run removes the directory after it last created a socket in it, so none is left whatever order they end in.
     """
-    if os.getppid() != supervisor_pid and Path(ipc_dir).name.startswith("ecas-"):
+
+    def __init__(self, ipc_dir: Path):
+        self.ipc_dir = ipc_dir
+        self.stop: Optional[Callable[[], None]] = None
+        signal.signal(SUPERVISOR_DIED, self._died)
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, SUPERVISOR_DIED)
+        except OSError:
+            pass
+        if os.getppid() != mp.parent_process().pid:  # it died before the request
+            self._died()
+
+    def _died(self, *_) -> None:
+        remove_ipc_dir(self.ipc_dir)
+        if self.stop is None:
+            os._exit(EXIT_STARTUP_FAILED)
+        self.stop()
+
+
+def remove_ipc_dir(ipc_dir: Path) -> None:
+    """Only a private `ecas-*` directory is removed, never a shared one such as a worker's temp directory.
+
+    Several processes may remove it at once: what one finds gone is another's doing.
+    """
+    if Path(ipc_dir).name.startswith("ecas-"):
         shutil.rmtree(ipc_dir, ignore_errors=True)
 
 
 def _split(made: Any) -> tuple[Any, Any]:
     """A factory returns a component, or (component, source) for the io stage."""
     return made if isinstance(made, tuple) else (made, None)
-
-
-def die_with_parent() -> None:
-    """Linux: get SIGTERM when the supervisor dies, so no stage is ever orphaned."""
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
 
 
 def redirect_output(path: Path) -> None:

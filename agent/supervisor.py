@@ -7,8 +7,8 @@ stage that reports a failure (e.g. its MP4 cannot be written), in one line, and 
 `bus.stall_timeout_s` while its upstream stage is ahead of it.
 Stop: STOP on the bus, then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the partial files
 the stages reported are removed (a killed stage cannot remove its own), and so is the private ipc directory.
-The directory is named `ecas-<supervisor pid>-*`: a run whose launcher was killed leaves it behind, and the
-next run removes it once that pid is gone.
+The directory is named `ecas-<supervisor pid>-*`: when the launcher is killed its processes remove it
+(agent.process.SupervisorWatch), and should they be killed too, the next run removes it once that pid is gone.
 """
 
 from __future__ import annotations

@@ -95,6 +95,20 @@ def stage_pid(launcher_pid: int, stage: str) -> int | None:
     return None
 
 
+def spawned(launcher_pid: int) -> int:
+    """How many children of the launcher run multiprocessing's spawn (its stages), from their very start."""
+    count = 0
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            count += parent == launcher_pid and b"spawn_main" in (entry / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+    return count
+
+
 def limit_file_size() -> None:
     """Every file of the run may grow to MP4_SIZE_LIMIT_BYTES: what a disk that fills does to the MP4.
 
@@ -147,10 +161,15 @@ def test_a_render_stage_killed_while_writing_leaves_no_partial_mp4(tmp_path):
     assert leftovers(proc.pid) == [] and ipc_dirs(proc.pid) == []
 
 
-def test_a_killed_launcher_leaves_no_socket_directory(tmp_path):
+@pytest.mark.parametrize("when", ["starting", "running"])
+def test_a_killed_launcher_leaves_no_socket_directory(tmp_path, when):
+    """Killed while its stages start or once they run: whatever order they end in, they leave no directory."""
     wav = recording(tmp_path / "talk.wav", 60.0)
     proc = launch(["--replay", str(wav), "--set", "dashboard.enabled=false"], tmp_path / "run")
-    wait_until(lambda: "ready" in _read(tmp_path / "run" / "render.log"), 120, "the stages are ready")
+    if when == "starting":
+        wait_until(lambda: spawned(proc.pid) == 4, 120, "the four stages are started")
+    else:
+        wait_until(lambda: "ready" in _read(tmp_path / "run" / "render.log"), 120, "the stages are ready")
     assert ipc_dirs(proc.pid)
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate(timeout=30)

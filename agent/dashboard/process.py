@@ -23,6 +23,7 @@ import zmq
 from agent.clock import ClockSync
 from agent.dashboard.events import (BINARY_AUDIO, BINARY_FRAME, LatencyMeter, RunState, Transcript, frame_jpeg,
                                     hello_event, pack_binary, pcm_int16, vad_event)
+from agent.process import SupervisorWatch, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
 from core.bus import Publisher, Subscriber, stage_address
@@ -147,13 +148,14 @@ class DashboardBridge:
         self.mic_chunks += 1
 
 
-async def serve(launch: DashboardLaunch) -> None:
+async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
     from agent.dashboard.server import Hub, make_app, start_server
 
     bridge = DashboardBridge(launch)
     bridge.hub = Hub(bridge.snapshot, bridge.command, bridge.send_mic if bridge.cfg.browser_mic else None)
+    supervisor.stop = lambda: setattr(bridge, "stopping", True)
     loop = asyncio.get_running_loop()
-    loop.add_signal_handler(signal.SIGTERM, lambda: setattr(bridge, "stopping", True))
+    loop.add_signal_handler(signal.SIGTERM, supervisor.stop)
     cfg = launch.app.dashboard
     tls = (cfg.tls_cert, cfg.tls_key) if cfg.tls_cert else None
     runner, port = await start_server(make_app(bridge.hub), cfg.host, cfg.port, tls)
@@ -191,21 +193,17 @@ def page_url(host: str, port: int, tls: bool = False) -> str:
 
 def dashboard_main(launch: DashboardLaunch) -> None:
     """The process entry point (multiprocessing spawn target)."""
-    from agent.process import die_with_parent, redirect_output, remove_ipc_dir_if_orphaned
     from core.threads import limit_threads
 
-    die_with_parent()
-    supervisor_pid = os.getppid()
+    supervisor = SupervisorWatch(launch.ipc_dir)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group; the supervisor decides
     redirect_output(launch.log_path)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s dashboard %(levelname)s %(name)s: %(message)s")
     limit_threads()
     try:
-        asyncio.run(serve(launch))
+        asyncio.run(serve(launch, supervisor))
     except OSError as e:
         log.error("%s", e)
         sys.exit(EXIT_STARTUP_FAILED)
-    finally:
-        remove_ipc_dir_if_orphaned(launch.ipc_dir, supervisor_pid)
     log.info("stopped")
