@@ -402,11 +402,11 @@ def plot_speeds(real: M.MotionClip, motions: dict[str, M.MotionClip], path: Path
     samples.update({name: group_speed_samples(inner(clip.poses)) for name, clip in motions.items()})
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
     bins = np.logspace(-2.5, 1.3, 50)
-    styles = {"real": ("k", 2.2), "generated": ("tab:red", 1.6), "synthetic_gt": ("tab:blue", 1.2),
-              "baseline": ("tab:gray", 1.0)}
+    styles = {"real": ("k", 2.2), "generated": ("tab:red", 1.6), "generated_codecs_only": ("tab:orange", 1.0),
+              "synthetic_gt": ("tab:blue", 1.2), "baseline": ("tab:gray", 1.0), "real_through_codecs": ("tab:green", 1.0)}
     for ax, group in zip(axes.flat, JOINT_GROUPS):
         for name, per_group in samples.items():
-            colour, width = styles.get(name, ("tab:green", 1.0))
+            colour, width = styles[name]
             hist, edges = np.histogram(np.maximum(per_group[group], bins[0]), bins, density=False)
             ax.plot(np.sqrt(edges[1:] * edges[:-1]), hist / hist.sum(), color=colour, lw=width, label=name)
         ax.axvline(STILL_RAD_S, color="k", ls=":", lw=0.8)
