@@ -28,7 +28,7 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
   90th percentile of its speed (steps);
 - blinks, brow raises and smiles per minute (events of the avatar's expression activations, ``FACE_EVENTS``);
 - per joint group, the share of its angular velocity's power at ``FAST_BAND_HZ`` (``spectra``: how much of its
-  motion is quick small movement rather than slow drift; the real speaker's spine has about a quarter there).
+  motion is quick small movement rather than slow drift; the real speaker's spine has about a third there).
 
 Every scalar is also given as a ratio to the real clip's. ``--out`` gets ``realism.json``, ``speeds.png`` (the
 speed distributions, real against generated) and ``side_by_side.mp4`` (the real clip and the agent speaking the

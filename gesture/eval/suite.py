@@ -3,8 +3,8 @@
 It loads the generator exactly as the runtime does (the `gesture:` section of configs/default.yaml, checked
 against the local backend's condition spec) and measures:
 - on held-out synthetic sessions (the `test` split of a synthetic directory; by default sessions k = 10, 20,
-  ..., 100 of seed 0, 3 minutes each, generated on first use: scripts/train_default.sh holds every 10th session of
-  the same data out of training, so none of them was seen), the agent's motion generated step by step from what
+  ..., 100 of seed 0, 3 minutes each, generated on first use and again whenever the generator changes:
+  scripts/train_default.sh holds every 10th session of the same data out of training, so none of them was seen), the agent's motion generated step by step from what
   the local dialogue backend would emit for the session's agent speech (speech codes of the agent audio, a text
   token at each word's first step), against the session's ground truth:
   BeatAlign and L1 divergence (the reference protocol of gesture.eval.metrics, built-in skeleton), voice-activity accuracy of the VA head, the ratio
