@@ -122,11 +122,15 @@ def inner(x: np.ndarray, fps: float = MOTION_FPS) -> np.ndarray:
 # ---------------------------------------------------------------- joint groups
 
 
+def frame_to_frame(poses: np.ndarray) -> np.ndarray:
+    """(T, J, 3) axis-angle -> (T-1, J, 3, 3): each joint's local rotation from one frame to the next, R_t^T R_t+1."""
+    rot = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
+    return np.swapaxes(rot[:-1], -1, -2) @ rot[1:]
+
+
 def angular_speeds(poses: np.ndarray, fps: float) -> np.ndarray:
     """(T, J, 3) axis-angle -> (T-1, J) rad/s: the angle of each joint's rotation from one frame to the next."""
-    rot = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
-    rel = np.swapaxes(rot[:-1], -1, -2) @ rot[1:]  # R_t^T R_t+1
-    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    cos = (np.trace(frame_to_frame(poses), axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.arccos(np.clip(cos, -1.0, 1.0)) * fps
 
 
@@ -159,8 +163,7 @@ def group_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
 def velocity_power(poses: np.ndarray, fps: float = MOTION_FPS) -> tuple[np.ndarray, np.ndarray]:
     """(T, J, 3) axis-angle -> frequencies (F,) in Hz and (F, J) the power spectrum of each joint's angular velocity
     (local frame, summed over its axes)."""
-    rot = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
-    velocity = matrix_to_axis_angle_np(np.swapaxes(rot[:-1], -1, -2) @ rot[1:]) * fps  # (T-1, J, 3) rad/s
+    velocity = matrix_to_axis_angle_np(frame_to_frame(poses)) * fps  # (T-1, J, 3) rad/s
     power = np.square(np.abs(np.fft.rfft(velocity - velocity.mean(0), axis=0))).sum(-1)  # (F, J)
     return np.fft.rfftfreq(len(velocity), 1.0 / fps), power
 

@@ -204,17 +204,16 @@ def ensure_heldout(root: Path, n_sessions: int) -> None:
     from gesture.synth.config import SynthConfig
     from gesture.synth.build import SESSION_MINUTES, generate_sessions, held_out_period
 
-    stamp = root / GENERATOR_STAMP
+    stamp, fingerprint = root / GENERATOR_STAMP, generator_fingerprint()
     takes = _test_takes(root) if root.is_dir() else []
-    current = stamp.is_file() and stamp.read_text().strip() == generator_fingerprint()
-    if current and len(takes) >= n_sessions:
+    if stamp.is_file() and stamp.read_text().strip() == fingerprint and len(takes) >= n_sessions:
         return
     cfg = SynthConfig()
     period = held_out_period(cfg)
     numbers = range(period, period * (n_sessions + 1), period)
     ids = generate_sessions(cfg, root, HELDOUT_DATA_SEED, numbers, SESSION_MINUTES, jobs=2)
     (root / "train_test_split.csv").write_text("id,type\n" + "".join(f"{i},test\n" for i in ids))
-    stamp.write_text(generator_fingerprint() + "\n")
+    stamp.write_text(fingerprint + "\n")
 
 
 def _session_order(take: Take) -> list:
