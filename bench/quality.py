@@ -1,13 +1,14 @@
 """The default agent's quality goals (issues 7 and 18), per sampling seed, from the project's own reports.
 
-    python -m bench.quality --json [--seeds 0 1 2 3 4] [--suite] [--out runs/bench_quality]
+    python -m bench.quality --json [--seeds 0 1 2 3 4] [--suite] [--config YAML] [--out runs/bench_quality]
 
 For each seed it runs the realism report on the real BEAT2 clip (`python -m gesture.realism --seed N --no-video`,
 about 5 minutes) and summarises issue 18's goals for the agent: which hold (gesture.eval.realism.goal_check), the
 ratios to the real speaker that fall outside 0.67-1.5, L1div, BeatAlign against the real clip and the share of
 quick motion per joint group. `--suite` adds the held-out synthetic suite (`python -m gesture.evaluate --suite
 default`, 10-25 minutes) and its six goals. The machine report comes first: the numbers are quality, not time, but
-the agent runs in real time through `launch.py`, and a loaded machine is worth knowing about.
+the agent runs in real time through `launch.py`, and a loaded machine is worth knowing about. `--config` measures
+another agent (an app config such as configs/default.yaml pointing at other checkpoints) in both reports.
 """
 
 from __future__ import annotations
@@ -42,17 +43,17 @@ def seed_summary(report: dict) -> dict:
             "quick_share_ratio": {g: round(v["fast_power_share"], 3) for g, v in agent["ratios"]["spectra"].items()}}
 
 
-def run_realism(seed: int, out: Path) -> dict:
+def run_realism(seed: int, out: Path, config: Path) -> dict:
     run_dir = out / f"seed_{seed}"
-    subprocess.run([sys.executable, "-m", "gesture.realism", "--seed", str(seed), "--no-video", "--out",
-                    str(run_dir)], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "gesture.realism", "--seed", str(seed), "--no-video", "--config",
+                    str(config), "--out", str(run_dir)], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     return json.loads((run_dir / "realism.json").read_text())
 
 
-def run_suite(out: Path) -> dict:
+def run_suite(out: Path, config: Path) -> dict:
     path = out / "suite.json"
-    subprocess.run([sys.executable, "-m", "gesture.evaluate", "--suite", "default", "--out", str(path)], cwd=ROOT,
-                   check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "gesture.evaluate", "--suite", "default", "--config", str(config),
+                    "--out", str(path)], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     goals = json.loads(path.read_text())["goals"]
     return {"met": goals["met"], "values": goals["values"]}
 
@@ -62,14 +63,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.quality", description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--suite", action="store_true", help="also the held-out synthetic suite (slow)")
+    p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.yaml", help="the agent's app config")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_quality")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     args = p.parse_args(argv)
     result: dict = {"machine": machine_report()}
-    result["realism"] = {seed: seed_summary(run_realism(seed, args.out)) for seed in args.seeds}
+    result["realism"] = {seed: seed_summary(run_realism(seed, args.out, args.config.resolve())) for seed in args.seeds}
     result["seeds_meeting_every_goal"] = [seed for seed, s in result["realism"].items() if s["all_met"]]
     if args.suite:
-        result["suite"] = run_suite(args.out)
+        result["suite"] = run_suite(args.out, args.config.resolve())
     if args.json:
         print(json.dumps(result))
     else:

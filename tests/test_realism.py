@@ -139,3 +139,9 @@ def test_the_real_clip_through_the_shipped_codecs_keeps_its_length_and_loses_det
     assert abs(len(recon.poses) - len(real.poses)) <= 2 and np.isfinite(recon.poses).all()
     before, after = R.group_stats(R.inner(real.poses)), R.group_stats(R.inner(recon.poses))
     assert 0.0 < after["wrists"]["diversity"] < before["wrists"]["diversity"]  # the codec's ceiling is below real
+
+
+def test_the_ceilings_codecs_follow_the_agents_config(tmp_path):
+    assert R.config_codecs(R.DEFAULT_APP_CONFIG) == R.ROOT / "checkpoints" / "codecs"
+    moved = R.config_codecs(R.DEFAULT_APP_CONFIG, ["gesture.codec_checkpoints=runs/candidate/codecs"])
+    assert moved == R.ROOT / "runs" / "candidate" / "codecs"

@@ -1,7 +1,7 @@
 """Realism report: motion generated for real speech against the real speaker's motion on that speech.
 
     python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
-        [--set KEY=VALUE ...]   (passed to launch.py, e.g. other checkpoints)
+        [--config YAML] [--set KEY=VALUE ...]   (passed to launch.py, e.g. a candidate agent or other checkpoints)
 
 The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spoken by the ``playback`` backend
 (``launch.py --speak WAV --headless --seed N --report DIR``, which writes the agent's motion to DIR/motion.npz;
@@ -13,8 +13,8 @@ way, so the report is seen to discriminate:
   ``--motion``;
 - ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
-- ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``): the ceiling of what
-  an agent speaking through those codecs can reach.
+- ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``, else the config's
+  ``gesture.codec_checkpoints``): the ceiling of what an agent speaking through those codecs can reach.
 
 Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - per joint group (``JOINT_GROUPS``): angular speed of the local rotations (rad/s; the angle of R_t^T R_t+1 times
@@ -64,6 +64,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SHARED_BEAT2 = ROOT.parent / "shared" / "data" / "beat2"
 REAL_CLIP = SHARED_BEAT2 / "2_scott_0_1_1"
 MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
+DEFAULT_APP_CONFIG = ROOT / "configs" / "default.yaml"
 
 JOINT_GROUPS = {
     "wrists": (20, 21),
@@ -362,15 +363,23 @@ def baseline_reference(real: M.MotionClip, seed: int) -> M.MotionClip:
     return M.MotionClip(poses.astype(np.float32), trans.astype(np.float32), expressions.astype(np.float32), MOTION_FPS)
 
 
-def speak_clip(wav: Path, seed: int, report_dir: Path, overrides: Sequence[str] = ()) -> Path:
-    """Run the agent on the recording with the playback backend (``overrides``: launch.py ``--set`` options);
-    returns its motion.npz."""
+def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: Sequence[str] = ()) -> Path:
+    """Run the agent of the app ``config`` on the recording with the playback backend (``overrides``: launch.py
+    ``--set`` options); returns its motion.npz."""
     report_dir.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, str(ROOT / "launch.py"), "--speak", str(wav), "--headless", "--seed", str(seed),
-           "--report", str(report_dir)] + [arg for item in overrides for arg in ("--set", item)]
+    cmd = [sys.executable, str(ROOT / "launch.py"), "--config", str(config), "--speak", str(wav), "--headless",
+           "--seed", str(seed), "--report", str(report_dir)] + [arg for item in overrides for arg in ("--set", item)]
     with open(report_dir / "launch.out", "w") as log:
         subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
     return report_dir / "motion.npz"
+
+
+def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
+    """The codec directory of the app ``config`` with launch.py ``--set`` ``overrides`` (relative to the repository)."""
+    from agent.sections import load_app_config
+
+    codecs = load_app_config(config, overrides).gesture.codec_checkpoints
+    return ROOT / (codecs if codecs is not None else "checkpoints/codecs")
 
 
 def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
@@ -488,11 +497,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline")
     p.add_argument("--out", help="directory for realism.json, speeds.png, side_by_side.mp4 and the agent's run")
     p.add_argument("--motion", help="reuse this motion.npz of the agent instead of running launch.py --speak")
+    p.add_argument("--config", type=Path, default=DEFAULT_APP_CONFIG, help="the agent's app config (launch.py --config)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="passed to launch.py (e.g. gesture.lm_checkpoint=runs/x/gesture_lm)")
     p.add_argument("--synthetic", help="reuse this motion npz as the synthetic reference instead of generating it")
-    p.add_argument("--codecs", default=str(ROOT / "checkpoints" / "codecs"),
-                   help="the agent's codecs, for the real clip's reconstruction (the ceiling)")
+    p.add_argument("--codecs", help="the agent's codecs, for the real clip's reconstruction (the ceiling; default: "
+                                    "the config's gesture.codec_checkpoints)")
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip, without extension (.npz and .wav)")
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
@@ -505,7 +515,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             if not path.is_file():
                 raise DataError(path, "not found")
         out.mkdir(parents=True, exist_ok=True)
-        generated_npz = Path(args.motion) if args.motion else speak_clip(wav, args.seed, out / "agent", args.set)
+        codecs = Path(args.codecs) if args.codecs else config_codecs(args.config, args.set)
+        generated_npz = (Path(args.motion) if args.motion
+                         else speak_clip(wav, args.seed, out / "agent", args.config, args.set))
         skeleton = Skeleton.default()
         real, generated = load_clip(real_npz), load_clip(generated_npz)
         n = min(len(real.poses), len(generated.poses))
@@ -514,12 +526,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                      else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json")))
         motions = {"generated": cut(generated, n)}
         if not args.motion:  # the same agent without its runtime layers: what the LM and codecs alone carry
-            plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only",
+            plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only", args.config,
                                    args.set + [f"gesture.{layer}.enabled=false" for layer in RUNTIME_LAYERS])
             motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
         motions |= {"synthetic_gt": synthetic,
                    "baseline": baseline_reference(real, args.seed),
-                   "real_through_codecs": cut(through_codecs(real, Path(args.codecs)), n)}
+                   "real_through_codecs": cut(through_codecs(real, codecs), n)}
         report = build_report(real, motions, M.load_speech(wav),
                               M.load_mean_speed(MEAN_SPEED_NPY), skeleton)
     except (DataError, ValueError, FileNotFoundError, subprocess.CalledProcessError) as err:
