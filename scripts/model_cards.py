@@ -64,10 +64,8 @@ frozen (the codes, and so the LM's tokens, do not change): `configs/codec/defaul
 {DECODER['lr']:g}, batch {DECODER['batch_size']}, the steps in the table below (`decoder_loss_curve.png`), with the
 reference's losses but the FK joint-position MSE weighted {DECODER['joint_position_weight']:g} (the reference's 10;
 `gesture.codec.losses`), so that errors near the root, which move every joint after them, weigh more.""" if tuned else "No decoder fine-tuning (`DECODER_REGIONS` is empty for this ship).")
-SYNTH_COMMIT = gen.get('commit')
-synth_note = (f" The sessions were generated at commit {SYNTH_COMMIT} of the generator; a later commit (73247b8)"
-              " scales an elbow's micro-motion down where it would hyperextend, so HEAD regenerates slightly different"
-              " elbows." if SYNTH_COMMIT else "")
+synth_note = (f" Made by the generator with fingerprint `{gen['generator_sha256'][:16]}`"
+              " (`gesture.synth.build.generator_fingerprint`, in the data's `generation.json`).")
 codec_data = data_line(W / 'codec_data') + synth_note + " Cut into 10 s chunks by `python -m gesture.data.build`."
 lm_data = data_line(W / 'data') + synth_note
 codec = f"""# The default gesture codecs (upper+hands, lower, face)

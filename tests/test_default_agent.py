@@ -25,6 +25,7 @@ from gesture.lm.data import LMDataset
 from gesture.lm.tokenize import (agent_words, place_words, tokenize_directory, tokenize_take, vad_from_frames,
                                  vad_from_words)
 from gesture.process import build_generator
+from gesture.synth.build import generator_fingerprint
 
 REPO = Path(__file__).resolve().parents[1]
 CHECKPOINTS = REPO / "checkpoints"
@@ -199,3 +200,5 @@ def test_training_chain_end_to_end_tiny(tmp_path):
     tuned = (tmp_path / "work" / "decoders" / "upper" / "model.safetensors").read_bytes()
     assert (ship / "codecs" / "upper" / "model.safetensors").read_bytes() == tuned  # the fine-tuned decoder ships
     assert json.loads((ship / "gesture_lm" / "speakers.json").read_text())
+    for card in ("codecs/README.md", "gesture_lm/README.md"):  # the cards name the generator that made the data
+        assert generator_fingerprint()[:16] in (ship / card).read_text()

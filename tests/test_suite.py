@@ -51,7 +51,7 @@ def test_goal_checks_use_the_issue_limits():
 
 def test_heldout_sessions_are_the_training_datas_own_test_sessions_in_session_order(tmp_path):
     from gesture.synth.config import SynthConfig
-    from gesture.synth.build import SESSION_MINUTES, generate_sessions
+    from gesture.synth.build import SESSION_MINUTES, generate_sessions, generator_fingerprint
 
     suite.ensure_heldout(tmp_path / "heldout", 2)
     takes = suite._test_takes(tmp_path / "heldout")
@@ -67,11 +67,11 @@ def test_heldout_sessions_are_the_training_datas_own_test_sessions_in_session_or
     suite.ensure_heldout(tmp_path / "heldout", 2)  # already there: kept
     assert takes[0].motion_path.stat().st_mtime_ns == first_write
     stamp = tmp_path / "heldout" / suite.GENERATOR_STAMP
-    assert stamp.read_text().strip() == suite.generator_fingerprint()
+    assert stamp.read_text().strip() == generator_fingerprint()
     stamp.write_text("an older generator\n")
     suite.ensure_heldout(tmp_path / "heldout", 2)  # made by another generator: regenerated
     assert takes[0].motion_path.stat().st_mtime_ns > first_write
-    assert stamp.read_text().strip() == suite.generator_fingerprint()
+    assert stamp.read_text().strip() == generator_fingerprint()
 
 
 def test_codec_mpjpe_of_the_shipped_codecs_on_real_motion_is_finite_and_small():

@@ -17,7 +17,7 @@ from gesture.data.config import DataConfig
 from gesture.synth.agent import (ELBOW_GATE_LOG_STD, MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_PARTS,
                                  gate_rms, micro_gate, micro_motion, micro_noise, soft_limit_angle,
                                  synthesize_agent_motion)
-from gesture.synth.build import generate_dataset, generate_session, main as synthetic_main
+from gesture.synth.build import generate_dataset, generate_session, generator_fingerprint, main as synthetic_main
 from gesture.synth.calibration import MicroNoise
 from gesture.config import MicroMotionConfig
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig, build_synth_config, load_synth_config
@@ -77,6 +77,7 @@ def test_same_seed_same_bytes_and_different_seed_differs(tmp_path):
     assert len(files) == 7  # npz, 3 wavs, json, split csv, generation.json
     for rel in files:
         assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
+    assert json.loads((tmp_path / "a" / "generation.json").read_text())["generator_sha256"] == generator_fingerprint()
     _, one = generate_session(cfg, 1, 1, 0.1)
     _, two = generate_session(cfg, 2, 1, 0.1)
     assert not np.array_equal(one.poses, two.poses)

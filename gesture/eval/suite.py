@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import math
 import sys
@@ -188,21 +187,11 @@ HELDOUT_DATA_SEED = 0  # scripts/train_default.sh's data seed; its test split is
 GENERATOR_STAMP = "generator.sha256"  # in the held-out directory: the generator_fingerprint that made it
 
 
-def generator_fingerprint() -> str:
-    """SHA-256 of the synthetic generator's code and calibration (gesture/synth): held-out sessions made by another
-    generator are another ground truth."""
-    digest = hashlib.sha256()
-    synth = REPO / "gesture" / "synth"
-    for path in sorted(synth.glob("*.py")) + [synth / "calibration.json"]:
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()
-
-
 def ensure_heldout(root: Path, n_sessions: int) -> None:
     """Generate held-out sessions 10, 20, ... of the training data's seed into `root` unless it already holds
     `n_sessions` test takes made by the current generator (``GENERATOR_STAMP``)."""
     from gesture.synth.config import SynthConfig
-    from gesture.synth.build import SESSION_MINUTES, generate_sessions, held_out_period
+    from gesture.synth.build import SESSION_MINUTES, generate_sessions, generator_fingerprint, held_out_period
 
     stamp, fingerprint = root / GENERATOR_STAMP, generator_fingerprint()
     takes = _test_takes(root) if root.is_dir() else []

@@ -18,7 +18,8 @@ and barge-ins (gesture/synth/conversation.py), and the agent's procedural whole-
   ``conversation`` = the turns of BOTH speakers in time order, each with its ``speaker``;
 - ``train_test_split.csv``: every ``round(1 / test_fraction)``-th session is ``test`` (held out), the rest
   ``train``; a session's content and split depend only on (seed, k), not on N;
-- ``generation.json``: the seed, session count, length and options used.
+- ``generation.json``: the seed, session count, length and options used, and ``generator_sha256``
+  (``generator_fingerprint``): which generator made the sessions.
 
 Same seed -> identical bytes: every session runs in a fresh process (espeak-ng carries state from one
 utterance to the next within a process), so ``--jobs`` does not change the output either.
@@ -29,6 +30,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import hashlib
 import json
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -119,6 +121,16 @@ def _make_session(job: tuple) -> str:
     return tid
 
 
+def generator_fingerprint() -> str:
+    """SHA-256 of the generator's code and calibration (gesture/synth/*.py and calibration.json): sessions made by
+    another generator are other data."""
+    digest = hashlib.sha256()
+    synth = Path(__file__).resolve().parent
+    for path in sorted(synth.glob("*.py")) + [synth / "calibration.json"]:
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
 def generate_sessions(cfg: SynthConfig, root: Path | str, seed: int, numbers: Iterable[int], minutes: float,
                       jobs: int = 1, progress=iter) -> list[str]:
     """Write sessions `numbers` (each its own process, see below) under ``root``; returns their take ids."""
@@ -146,7 +158,8 @@ def generate_dataset(cfg: SynthConfig, root: Path | str, n_sessions: int, minute
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(["id", "type"])
         writer.writerows([take_id(cfg, k), split_of(cfg, k, n_sessions)] for k in range(1, n_sessions + 1))
-    meta = {"seed": seed, "sessions": n_sessions, "minutes": minutes, "config": dataclasses.asdict(cfg)}
+    meta = {"seed": seed, "sessions": n_sessions, "minutes": minutes, "config": dataclasses.asdict(cfg),
+            "generator_sha256": generator_fingerprint()}
     (root / "generation.json").write_text(json.dumps(meta, indent=1))
     return ids
 
