@@ -12,9 +12,10 @@ Optional, outside the reference (`log_speed_weight` > 0, used by the default dec
 log joint speed, speed = sqrt(|v|^2 + floor^2) in m/s, on the joints BeatAlign reads. Position and velocity
 MSE hardly see millimetre-per-second wobble during holds and listening, yet each wobble is a velocity
 minimum, i.e. a motion beat; in log speed a slow segment weighs as much as a stroke.
-Also optional (`expression_mse_weight` > 0, 10 for the default face codec): the MSE of the expressions. The L1
+Also optional (`expression_mse_weight` > 0, 30 for the default face codec): the MSE of the expressions. The L1
 term alone is minimised by the median, and blinks, brow raises and smiles are rare events whose median is rest:
-the small face codec trained on L1 alone reconstructed a face that never blinks (the README's quality section).
+the small face codec trained on L1 alone reconstructed a face that never blinks (the README's quality section);
+at weight 10 it blinked on some training runs and on others, seeds 0-2 of one dataset, not at all.
 SMPL-X vertex terms need a licensed body model and are not computed here. Joint positions come
 from `gesture.body.skeleton.forward_kinematics` on the given skeleton (default: the built-in one), with
 every joint outside the region at rest and no translation (the lower body adds its integrated root).
