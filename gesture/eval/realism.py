@@ -376,9 +376,13 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
 
 def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
     """The codec directory of the app ``config`` with launch.py ``--set`` ``overrides`` (relative to the repository)."""
-    from agent.sections import load_app_config
+    from core.config import apply_override, build_dataclass, load_yaml, parse_override
+    from gesture.config import GestureConfig
 
-    codecs = load_app_config(config, overrides).gesture.codec_checkpoints
+    tree = load_yaml(config)
+    for text in overrides:
+        apply_override(tree, *parse_override(text))
+    codecs = build_dataclass(GestureConfig, tree.get("gesture"), "gesture").codec_checkpoints
     return ROOT / (codecs if codecs is not None else "checkpoints/codecs")
 
 
