@@ -519,9 +519,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             if not path.is_file():
                 raise DataError(path, "not found")
         out.mkdir(parents=True, exist_ok=True)
-        codecs = Path(args.codecs) if args.codecs else config_codecs(args.config, args.set)
+        config = args.config.resolve()  # launch.py runs in the repository
+        codecs = Path(args.codecs) if args.codecs else config_codecs(config, args.set)
         generated_npz = (Path(args.motion) if args.motion
-                         else speak_clip(wav, args.seed, out / "agent", args.config, args.set))
+                         else speak_clip(wav, args.seed, out / "agent", config, args.set))
         skeleton = Skeleton.default()
         real, generated = load_clip(real_npz), load_clip(generated_npz)
         n = min(len(real.poses), len(generated.poses))
@@ -530,7 +531,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                      else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json")))
         motions = {"generated": cut(generated, n)}
         if not args.motion:  # the same agent without its runtime layers: what the LM and codecs alone carry
-            plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only", args.config,
+            plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only", config,
                                    args.set + [f"gesture.{layer}.enabled=false" for layer in RUNTIME_LAYERS])
             motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
         motions |= {"synthetic_gt": synthetic,
