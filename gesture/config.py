@@ -87,7 +87,10 @@ class StabilizerConfig:
     # Per joint of `joints`, the cutoff while it is at rest (elbows, wrists: each group's still fraction matched the
     # ground truth's on validation sessions, synthetic seed 1, sampled without a hold bias) ...
     min_cutoff_hz: tuple[float, ...] = (0.3, 0.3, 2.0, 2.0)
-    speed_gain_hz: float = 0.3  # ... rising this much per rad/s of its speed
+    # ... rising this much per rad/s of its speed: 0.6 since the LM trained on the data whose micro-motion has real
+    # motion's spectrum; with 0.3 its elbows on the real clip's speech reached 0.62-0.64 of the speaker's 90th
+    # percentile speed (seeds 0 and 3), with 0.6 0.68-0.70 (README, realism section)
+    speed_gain_hz: float = 0.6
     speed_cutoff_hz: float = 1.0  # the speed estimate's own smoothing
 
     def __post_init__(self) -> None:
