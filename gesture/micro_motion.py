@@ -30,8 +30,8 @@ import torch
 
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from gesture.config import IdleGateConfig
-from gesture.synth.agent import (ELBOW_GATE_LOG_STD, ELBOW_SIDES, MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
-                                 MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, micro_gate)
+from gesture.synth.agent import (MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
+                                 MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, OWN_GATES, micro_gate)
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
 from gesture.synth.tracks import (NOISE_TRUNCATE_SIGMAS, lowpass_gain, lowpass_sos, lowpass_warmup_frames,
                                   noise_sigma_frames)
@@ -175,8 +175,10 @@ class MicroMotion:
         self.gate = CausalSmoothNoise(np.full(len(MICRO_PARTS), MICRO_GATE_HZ), fps)  # one per body part
         part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
         self.part = np.array([part_of.get(j, 0) for j in self.joints])  # (J,)
-        self.elbows = [k for k, j in enumerate(self.joints) if j in ELBOW_SIDES]  # rows with their own gate, as in the data
-        self.elbow_gate = CausalSmoothNoise(np.full(len(self.elbows), MICRO_GATE_HZ), fps) if self.elbows else None
+        own_log_std = {j: log_std for joints, log_std in OWN_GATES for j in joints}
+        self.own = [k for k, j in enumerate(self.joints) if j in own_log_std]  # rows with their own gate, as in the data
+        self.own_log_std = np.array([own_log_std[self.joints[k]] for k in self.own])  # (own,)
+        self.own_gate = CausalSmoothNoise(np.full(len(self.own), MICRO_GATE_HZ), fps) if self.own else None
         self.listening_scale = listening_scale
         self.speaking_alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
         self.envelope = VoiceEnvelope(fps)
@@ -187,8 +189,8 @@ class MicroMotion:
         self.rng = np.random.default_rng(self.seed)
         self.noise.reset(self.rng)
         self.gate.reset(self.rng)
-        if self.elbow_gate is not None:
-            self.elbow_gate.reset(self.rng)
+        if self.own_gate is not None:
+            self.own_gate.reset(self.rng)
         self.speaking = 0.0
         self.envelope.reset()
 
@@ -202,9 +204,9 @@ class MicroMotion:
         gate = micro_gate(self.gate.step(self.rng.standard_normal(self.gate.channels)))[self.part]  # (J,)
         slow, fast = self.noise.step(self.rng.standard_normal(self.noise.channels)).reshape(2, -1, 3)  # (J, 3) each
         noise = slow + self.fast_ratio[:, None] * fast
-        if self.elbow_gate is not None:
-            own = self.elbow_gate.step(self.rng.standard_normal(self.elbow_gate.channels))  # (elbows,)
-            gate[self.elbows] = micro_gate(own, ELBOW_GATE_LOG_STD)
+        if self.own_gate is not None:
+            own = self.own_gate.step(self.rng.standard_normal(self.own_gate.channels))  # (own,)
+            gate[self.own] = micro_gate(own, self.own_log_std)
         offset = noise * self.std * (level * gate)[:, None]
         limit = LIMIT_STDS * self.std * np.sqrt(1 + self.fast_ratio**2)[:, None]  # the two noises' joint std
         return limit * np.tanh(offset / np.maximum(limit, 1e-12))

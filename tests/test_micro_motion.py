@@ -15,6 +15,9 @@ from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.micro_motion import (SPEAKING_RMS, CausalSmoothNoise, LowpassNoise, VoiceEnvelope, calibrated_micro_motion,
                                   frame_rms)
 from gesture.process import build_micro_motion
+from gesture.synth import agent
+from gesture.synth.agent import MICRO_ENVELOPE_GAIN, micro_motion
+from gesture.synth.calibration import load_calibration
 from gesture.synth.tracks import lowpass_noise, lowpass_sos, smooth_noise
 
 torch.set_num_threads(1)
@@ -138,3 +141,28 @@ def test_config_errors_name_the_option():
     with pytest.raises(ConfigError, match=r"gesture.micro_motion.joints: joints \[30\]: no fitted micro-motion"):
         build_micro_motion(MicroMotionConfig(enabled=True, joints=(3, 30)), seed=0)
     assert build_micro_motion(MicroMotionConfig(), seed=0) is None
+
+
+def test_wrists_hold_still_as_often_as_the_datas(monkeypatch):
+    """The layer's wrists have the data's own burstier gate (gesture.synth.agent.OWN_GATES): on steady speech their
+    offsets turn slower than 0.2 rad/s in the share of frames the data's micro-motion does, not the arm gate's."""
+    frames, wrists = 20_000, (20, 21)
+    layer = calibrated_micro_motion(wrists, MOTION_FPS, seed=0)
+    rms = float(np.sqrt(np.mean(STEP_PCM**2)))
+    runtime = np.stack([layer.offsets(rms) for _ in range(frames)])[MOTION_FPS * 10:]  # (T, 2, 3) after the warm-up
+    fitted = load_calibration().micro_motion
+    level = np.full(frames, 1 + MICRO_ENVELOPE_GAIN * 0.5)  # speaking, at the loud level
+
+    def data_still() -> float:
+        offsets = micro_motion(np.random.default_rng(0), frames, MOTION_FPS, {j: fitted[j] for j in wrists}, level)
+        return _still_fraction(np.stack([offsets[j] for j in wrists], 1))
+
+    own_gated = data_still()
+    monkeypatch.setattr(agent, "OWN_GATES", tuple(g for g in agent.OWN_GATES if g[0] != wrists))
+    assert _still_fraction(runtime) == pytest.approx(own_gated, rel=0.15)
+    assert data_still() < own_gated / 1.15  # the arm gate, for contrast
+
+
+def _still_fraction(offsets: np.ndarray) -> float:
+    """(T, J, 3) axis-angle offsets -> the share of frame steps slower than 0.2 rad/s (approximately)."""
+    return float((np.linalg.norm(np.diff(offsets, axis=0), axis=-1) * MOTION_FPS < 0.2).mean())

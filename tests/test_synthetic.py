@@ -14,7 +14,7 @@ from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
-from gesture.synth.agent import (ELBOW_GATE_LOG_STD, MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_PARTS,
+from gesture.synth.agent import (MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_PARTS, OWN_GATES,
                                  gate_rms, micro_gate, micro_motion, micro_noise, soft_limit_angle,
                                  synthesize_agent_motion)
 from gesture.synth.build import generate_dataset, generate_session, generator_fingerprint, main as synthetic_main
@@ -295,19 +295,24 @@ def test_stored_micro_motion_covers_the_torso_head_and_arms():
         assert 0.1 < noise.cutoff_hz <= 3.0 and 0 <= noise.fast_ratio <= 1.0
 
 
-def test_elbow_gates_are_burstier_at_the_same_rms_and_leave_the_other_joints_draws_alone():
+def test_own_gates_are_burstier_at_the_same_rms_and_are_drawn_after_every_joints_noise():
     z = np.random.default_rng(0).standard_normal(400_000)
-    arm, elbow = micro_gate(z), micro_gate(z, ELBOW_GATE_LOG_STD)
-    rms = gate_rms(MICRO_GATE_LOG_STD, MICRO_GATE_MAX)
-    np.testing.assert_allclose([np.sqrt((arm**2).mean()), np.sqrt((elbow**2).mean())], [rms, rms], rtol=0.01)
-    assert (elbow < 0.25).mean() > 1.5 * (arm < 0.25).mean()  # more time near still
-    params = {j: MicroNoise(np.full(3, 0.1), 1.0, 0.2) for j in (3, 12, 18, 19, 20)}
+    arm, rms = micro_gate(z), gate_rms(MICRO_GATE_LOG_STD, MICRO_GATE_MAX)
+    for _, log_std in OWN_GATES:
+        own = micro_gate(z, log_std)
+        np.testing.assert_allclose([np.sqrt((arm**2).mean()), np.sqrt((own**2).mean())], [rms, rms], rtol=0.01)
+        assert (own < 0.25).mean() > 1.5 * (arm < 0.25).mean()  # more time near still
+    params = {j: MicroNoise(np.full(3, 0.1), 1.0, 0.2) for j in (3, 12, 18, 19, 20, 21)}
     got = micro_motion(np.random.default_rng(7), 200, 25.0, params, np.ones(200))
-    rng = np.random.default_rng(7)  # the draws before the elbows had their own gates: parts' gates, then each joint
-    parts = micro_gate(smooth_noise(rng, 200, 25.0, MICRO_GATE_HZ, len(MICRO_PARTS)))  # (T, parts)
+    rng = np.random.default_rng(7)  # the parts' gates, each joint's noise, then the own gates in OWN_GATES' order
+    torso = micro_gate(smooth_noise(rng, 200, 25.0, MICRO_GATE_HZ, len(MICRO_PARTS)))[:, 0]  # (T,) the torso's part
     noise = {j: micro_noise(rng, 200, 25.0, params[j]) for j in sorted(params)}
-    for j, part in ((3, 0), (12, 0), (20, 1)):
-        np.testing.assert_allclose(got[j], noise[j] * parts[:, part, None], atol=1e-12)
+    gates = {3: torso, 12: torso}
+    for joints, log_std in OWN_GATES:
+        own = micro_gate(smooth_noise(rng, 200, 25.0, MICRO_GATE_HZ, len(joints)), log_std)  # (T, joints)
+        gates.update({j: own[:, k] for k, j in enumerate(joints)})
+    for j in sorted(params):
+        np.testing.assert_allclose(got[j], noise[j] * gates[j][:, None], atol=1e-12)
 
 
 @pytest.mark.slow

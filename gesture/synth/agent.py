@@ -46,6 +46,11 @@ MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40
 # speech held its elbows still (< 0.2 rad/s) in 0.73x the real speaker's share of frames (median of 8 seeds, 0.49x at
 # worst); with 0.85, in 1.09x (0.55x-2.68x), at 0.95x his median elbow speed (gate scaled to the same RMS).
 ELBOW_GATE_LOG_STD = 0.85
+# The wrists too: with the arms' gate, the synthetic agent on the real clip's speech held its wrists still in 0.78x the
+# speaker's share of frames (median of 8 seeds), and the agent, whose runtime layer adds this motion to decoded
+# wrists, in 0.52-0.63x on three of five seeds.
+WRIST_GATE_LOG_STD = 0.85
+OWN_GATES = (((18, 19), ELBOW_GATE_LOG_STD), ((20, 21), WRIST_GATE_LOG_STD))  # joints with their own gates
 MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
 ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
 MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
@@ -219,15 +224,14 @@ def micro_noise(rng: np.random.Generator, n: int, fps: float, noise: MicroNoise)
 def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int, MicroNoise],
                  scale: np.ndarray) -> dict[int, np.ndarray]:
     """Per joint, (T, 3) local rotation offsets: its ``micro_noise`` times ``scale`` (T,) and its body part's gate,
-    or the elbow's own."""
+    or its own (``OWN_GATES``)."""
     part_gates = micro_gate(smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(MICRO_PARTS)))  # (T, parts)
     part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
     noise = {j: micro_noise(rng, n, fps, params[j]) for j in sorted(params)}  # (T, 3) each
     gates = {j: part_gates[:, part_of.get(j, 0)] for j in noise}
-    elbows = sorted(set(ELBOW_SIDES) & set(noise))  # drawn last: every other joint's noise is as it was without them
-    if elbows:
-        own = micro_gate(smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(elbows)), ELBOW_GATE_LOG_STD)  # (T, elbows)
-        gates.update({j: own[:, k] for k, j in enumerate(elbows)})
+    for joints, log_std in OWN_GATES:  # drawn last, in order: a gate added at the end leaves every earlier draw alone
+        own = micro_gate(smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(joints)), log_std)  # (T, joints)
+        gates.update({j: own[:, k] for k, j in enumerate(joints) if j in noise})
     return {j: noise[j] * (scale * gates[j])[:, None] for j in noise}
 
 
