@@ -65,6 +65,12 @@ ARM_MAX_FLEX_STEP_RAD = 0.25  # per frame (real: the fastest joint turns 0.40 ra
 # 0.60/0.68 (p99 0.52/0.57), elbows 1.91/2.45 (p99 1.86/2.37), wrists 1.22/1.30 (p99 1.11/1.17).
 JOINT_SOFT_LIMITS_RAD = {**{j: (0.55, 0.68) for j in (13, 14)}, **{j: (2.2, 2.55) for j in (18, 19)},
                          **{j: (1.1, 1.4) for j in (20, 21)}}  # joint -> (knee, cap)
+# The collars take part of each upper arm's swing (as a real shoulder girdle does): the collar turns by this share of
+# the upper arm's rotation (chest frame) away from its median direction, smoothed over COLLAR_SMOOTH_S. The arm IK
+# then re-solves, so the hands' targets stay and the shoulder joints turn less. Without it, on the real clip's speech,
+# the shoulders spread 1.6x as wide as the speaker's (pose diversity) and the collars hardly moved.
+COLLAR_SHARE = 0.5
+COLLAR_SMOOTH_S = 0.2
 POLE_OUT, POLE_DOWN = 0.15, -0.8  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
 SIDE_JOINTS = {  # (collar, shoulder, elbow, wrist, hip, knee, ankle, foot) per side
     "left": (13, 16, 18, 20, 1, 4, 7, 10),
@@ -250,8 +256,8 @@ def _aa(v) -> np.ndarray:
 class BodySolver:
     """Turns posture, arm tracks and head offsets into local joint rotations (T, 55, 3, 3)."""
 
-    def __init__(self, skeleton: Skeleton):
-        self.skeleton = skeleton
+    def __init__(self, skeleton: Skeleton, fps: float):
+        self.skeleton, self.fps = skeleton, fps
         self.base = load_calibration().base_local_aa
         rest = skeleton.rest_joints.astype(np.float64)
         self.arm_chains, self.leg_chains = {}, {}
@@ -282,7 +288,27 @@ class BodySolver:
         for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
             self._solve_arm(local, joints, rots, arms, s, side, sign)
             self._solve_leg(local, joints, rots, posture, s, side, sign)
+        self._collars_follow_arms(local, posture.trans)
+        joints, rots = self._fk(local, posture.trans)
+        for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
+            self._solve_arm(local, joints, rots, arms, s, side, sign)
         return local
+
+    def _collars_follow_arms(self, local: np.ndarray, trans: np.ndarray) -> None:
+        """Turns each collar by COLLAR_SHARE of its upper arm's swing from the arm's median direction (chest frame)."""
+        joints, rots = self._fk(local, trans)
+        sigma = COLLAR_SMOOTH_S * self.fps
+        for side in ("left", "right"):
+            collar, sh, el = SIDE_JOINTS[side][:3]
+            upper = np.einsum("tji,tj->ti", rots[:, 9], joints[:, el] - joints[:, sh])  # (T, 3) chest frame
+            upper /= np.linalg.norm(upper, axis=-1, keepdims=True)
+            ref = np.median(upper, axis=0)
+            ref /= np.linalg.norm(ref)
+            axis = np.cross(ref, upper)  # (T, 3), length sin(angle)
+            sin = np.linalg.norm(axis, axis=-1, keepdims=True)
+            angle = np.arctan2(sin, (upper @ ref)[:, None])  # (T, 1)
+            turn = COLLAR_SHARE * angle * axis / np.maximum(sin, 1e-9)  # (T, 3) axis-angle, chest frame
+            local[:, collar] = _aa(gaussian_filter1d(turn, sigma, axis=0)) @ local[:, collar]
 
     def _solve_arm(self, local, joints, rots, arms: ArmTracks, s: int, side: str, sign: float) -> None:
         collar, sh, el, wr = SIDE_JOINTS[side][:4]
@@ -334,7 +360,7 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
         angle = np.maximum(np.linalg.norm(root, axis=-1, keepdims=True), 1e-9)
         eased = ROOT_MICRO_MAX_RAD * np.tanh(angle / ROOT_MICRO_MAX_RAD)
         posture.root_offset_aa = posture.root_offset_aa + root * (eased / angle)
-    solver = BodySolver(skeleton)
+    solver = BodySolver(skeleton, fps)
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
     gesture_local = local.copy()  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
     for j, offset in offsets.items():
