@@ -18,7 +18,9 @@ peaks bent them past 130 degrees). Its size follows the agent's own audio as the
 and 0.75-1.25x with the speech envelope (without that term, the layer on reconstructed validation sessions scored a
 BeatAlign 0.02 above the data's own micro-motion model; with it, the same). It is causal (the data's Butterworth
 filters run one frame at a time; the gates' Gaussian smoothing as a causal FIR over a ring of white noise) and
-seeded per session, and it post-multiplies each joint's local rotation, as the synthetic agent does.
+seeded per session, and it post-multiplies each joint's local rotation, as the synthetic agent does. Then, as in the
+data, the spine and the neck counter quick turns beneath them (gesture.synth.reflex), so that the chest and the head
+move as steadily in space as the real speaker's.
 """
 
 from __future__ import annotations
@@ -26,13 +28,13 @@ from __future__ import annotations
 from typing import Mapping, Sequence
 
 import numpy as np
-import torch
 
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from gesture.config import IdleGateConfig
 from gesture.synth.agent import (MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
                                  MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, OWN_GATES, micro_gate)
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
+from gesture.synth.reflex import PostureReflexes
 from gesture.synth.tracks import (NOISE_TRUNCATE_SIGMAS, lowpass_gain, lowpass_sos, lowpass_warmup_frames,
                                   noise_sigma_frames)
 
@@ -182,6 +184,8 @@ class MicroMotion:
         self.listening_scale = listening_scale
         self.speaking_alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
         self.envelope = VoiceEnvelope(fps)
+        self.reflexes = PostureReflexes(fps)
+        self.changed = sorted(set(self.joints) | {j for r in self.reflexes.reflexes for j in r.joints})
         self.seed = seed
         self.reset()
 
@@ -193,6 +197,7 @@ class MicroMotion:
             self.own_gate.reset(self.rng)
         self.speaking = 0.0
         self.envelope.reset()
+        self.reflexes.reset()
 
     def offsets(self, rms: float) -> np.ndarray:
         """The next frame's (J, 3) axis-angle offsets, given the frame's agent audio RMS (speaking above the idle
@@ -213,12 +218,13 @@ class MicroMotion:
 
     def step(self, poses: np.ndarray, agent_pcm: np.ndarray | None) -> np.ndarray:
         """(F, 55, 3) axis-angle and this step's agent audio (float in [-1, 1], or None: silent) -> the same poses
-        with each frame's offsets post-multiplied on `joints`."""
+        with each frame's offsets post-multiplied on `joints`, then the posture reflexes (gesture.synth.reflex)."""
         offsets = np.stack([self.offsets(rms) for rms in frame_rms(agent_pcm, len(poses))])  # (F, J, 3)
-        local = axis_angle_to_matrix(torch.from_numpy(poses[:, self.joints]).double())  # (F, J, 3, 3)
-        moved = local @ axis_angle_to_matrix(torch.from_numpy(offsets))
+        local = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (F, 55, 3, 3)
+        local[:, self.joints] = local[:, self.joints] @ axis_angle_to_matrix(offsets)
+        local = self.reflexes.step(local)
         out = poses.copy()
-        out[:, self.joints] = matrix_to_axis_angle(moved).numpy()
+        out[:, self.changed] = matrix_to_axis_angle(local[:, self.changed])
         return out
 
 

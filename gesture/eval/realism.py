@@ -28,7 +28,10 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
   90th percentile of its speed (steps);
 - blinks, brow raises and smiles per minute (events of the avatar's expression activations, ``FACE_EVENTS``);
 - per joint group, the share of its angular velocity's power at ``FAST_BAND_HZ`` (``spectra``: how much of its
-  motion is quick small movement rather than slow drift; the real speaker's spine has about a third there).
+  motion is quick small movement rather than slow drift; the real speaker's spine has about a third there);
+- the chest and the head in space (``world``, ``WORLD_PARTS``): the angular speed and acceleration of their world
+  rotations. A speaker's spine and neck counter the turns beneath them (gesture.synth.reflex), so his head moves more
+  steadily in space than its joints' local speeds suggest.
 
 Every scalar is also given as a ratio to the real clip's. ``--out`` gets ``realism.json``, ``speeds.png`` (the
 speed distributions, real against generated) and ``side_by_side.mp4`` (the real clip and the agent speaking the
@@ -78,6 +81,7 @@ RUNTIME_LAYERS = ("micro_motion", "face", "foot_lock", "stabilizer")  # config s
 GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four
 STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)
+WORLD_PARTS = {"chest": (0, 3, 6, 9), "head": (0, 3, 6, 9, 12, 15)}  # root-to-part chains measured in space
 EDGE_S = 2.0
 PELVIS, WRISTS, ANKLES = 0, (20, 21), (7, 8)
 PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
@@ -182,6 +186,30 @@ def fast_power_shares(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
             for name, joints in JOINT_GROUPS.items()}
 
 
+def world_rotations(poses: np.ndarray, chain: Sequence[int]) -> np.ndarray:
+    """(T, J, 3) axis-angle -> (T, 3, 3): the world rotation of the last joint of ``chain`` (from the root down)."""
+    rot = axis_angle_to_matrix(np.asarray(poses, np.float64)[:, list(chain)])  # (T, len(chain), 3, 3)
+    world = rot[:, 0]
+    for k in range(1, len(chain)):
+        world = world @ rot[:, k]
+    return world
+
+
+def world_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
+    """Per body part of ``WORLD_PARTS``: its world rotation's angular speed (median, p90; rad/s) and angular
+    acceleration (median, p90; rad/s^2), how steadily it moves in space rather than against its parent."""
+    out = {}
+    for name, chain in WORLD_PARTS.items():
+        world = world_rotations(poses, chain)  # (T, 3, 3)
+        step = matrix_to_axis_angle_np(np.swapaxes(world[:-1], -1, -2) @ world[1:]) * fps  # (T-1, 3) own frame
+        velocity = np.einsum("tij,tj->ti", world[:-1], step)  # (T-1, 3) rad/s in the world frame
+        speed = np.linalg.norm(velocity, axis=-1)
+        accel = np.linalg.norm(np.diff(velocity, axis=0), axis=-1) * fps
+        out[name] = {"speed_median": float(np.median(speed)), "speed_p90": float(np.percentile(speed, 90)),
+                     "accel_median": float(np.median(accel)), "accel_p90": float(np.percentile(accel, 90))}
+    return out
+
+
 def group_speed_samples(poses: np.ndarray, fps: float = MOTION_FPS) -> dict[str, np.ndarray]:
     speeds = angular_speeds(poses, fps)
     return {name: speeds[:, list(joints)].reshape(-1) for name, joints in JOINT_GROUPS.items()}
@@ -262,7 +290,7 @@ def describe(clip: M.MotionClip, skeleton: Skeleton) -> dict:
     joints = body_frame_joints(poses, skeleton)
     return {"groups": group_stats(poses), "hands": hand_stats(joints),
             "feet": feet_stats(poses, inner(clip.trans), skeleton), "face": face_stats(inner(clip.expressions)),
-            "spectra": fast_power_shares(poses)}
+            "spectra": fast_power_shares(poses), "world": world_stats(poses)}
 
 
 def protocol_metrics(clip: M.MotionClip, real: M.MotionClip, speech, mean_speed: np.ndarray) -> dict:
@@ -395,7 +423,7 @@ def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
         protocol = protocol_metrics(clip, real, speech, mean_speed)
         report["real"]["protocol"] = {"l1div": protocol["real_l1div"], "beat_align": protocol["real_beat_align"]}
         entry = dict(desc, protocol={k: protocol[k] for k in ("l1div", "beat_align", "fgd_kinetic")})
-        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "feet", "face", "spectra")}, real_desc)
+        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "feet", "face", "spectra", "world")}, real_desc)
         entry["ratios"]["l1div"] = protocol["l1div"] / protocol["real_l1div"]
         entry["beat_align_minus_real"] = protocol["beat_align"] - protocol["real_beat_align"]
         entry["hand_height_overlap"] = float(np.minimum(height_histogram(body_frame_joints(inner(clip.poses), skeleton)),
@@ -488,6 +516,10 @@ def format_table(report: dict) -> str:
     for group in JOINT_GROUPS:
         row = [report[n]["ratios"]["spectra"][group]["fast_power_share"] for n in names]
         lines.append(f"{group + ' fast_power_share':30s}" + "".join(f"{v:32.2f}" for v in row))
+    for part in WORLD_PARTS:
+        for key in report["real"]["world"][part]:
+            row = [report[n]["ratios"]["world"][part][key] for n in names]
+            lines.append(f"{part + ' in space ' + key:30s}" + "".join(f"{v:32.2f}" for v in row))
     lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:32.2f}" for n in names))
     lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:32.2f}" for n in names))
     lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:32.3f}" for n in names))

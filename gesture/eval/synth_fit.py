@@ -19,6 +19,7 @@ import json
 from dataclasses import replace
 import sys
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
@@ -74,20 +75,23 @@ def synthetic_stats(wav: Path, words, seeds, params) -> tuple[np.ndarray, ...]:
     return tuple(np.mean([s[k] for s in stats], 0) for k in range(len(stats[0])))
 
 
-def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print) -> dict[int, MicroNoise]:
-    """Per joint of MICRO_JOINTS, its noise; ``words``: the clip's timed words (else recognised)."""
+def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print,
+        keep: Mapping[int, MicroNoise] | None = None) -> dict[int, MicroNoise]:
+    """Per joint of MICRO_JOINTS, its noise; ``words``: the clip's timed words (else recognised); ``keep``: joints
+    held at the given noise throughout (the others are fitted with them in place)."""
     from gesture.eval.realism import load_clip
 
     wav = clip.with_suffix(".wav")
     real_std, real_div, real_med, real_fast = joint_stats(load_clip(clip.with_suffix(".npz")).poses)
     words = recognised_words(wav) if words is None else words
+    keep = dict(keep or {})
     base_std = synthetic_stats(wav, words, seeds, {})[0]
     std = np.sqrt(np.maximum(real_std**2 - base_std**2, (STD_FLOOR * real_std) ** 2))  # (J, 3)
     hz = np.array([PROBE_HZ * real_med[k] / noise_median_speed(std[k], PROBE_HZ) for k in range(len(MICRO_JOINTS))])
     hz = np.minimum(hz, MAX_CUTOFF_HZ)
     fast = np.full(len(MICRO_JOINTS), INITIAL_FAST_RATIO)
     for it in range(iterations):
-        params = {j: MicroNoise(std[k], float(hz[k]), float(fast[k])) for k, j in enumerate(MICRO_JOINTS)}
+        params = {j: MicroNoise(std[k], float(hz[k]), float(fast[k])) for k, j in enumerate(MICRO_JOINTS)} | keep
         _, got_div, got_med, got_fast = synthetic_stats(wav, words, seeds, params)
         log(f"iteration {it}: diversity ratio {np.round(got_div / real_div, 2).tolist()}, "
             f"median speed ratio {np.round(got_med / real_med, 2).tolist()}, "
@@ -95,7 +99,7 @@ def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print)
         std = np.maximum(std * np.clip(real_div / got_div, 1 / MAX_STEP, MAX_STEP)[:, None], STD_FLOOR * real_std)
         hz = np.minimum(hz * np.clip(real_med / got_med, 1 / MAX_STEP, MAX_STEP), MAX_CUTOFF_HZ)
         fast = np.minimum(fast * np.clip(real_fast / got_fast, 1 / MAX_STEP, MAX_STEP), MAX_FAST_RATIO)
-    return {j: MicroNoise(std[k], float(hz[k]), float(fast[k])) for k, j in enumerate(MICRO_JOINTS)}
+    return {j: MicroNoise(std[k], float(hz[k]), float(fast[k])) for k, j in enumerate(MICRO_JOINTS)} | keep
 
 
 def main(argv=None) -> int:
@@ -104,6 +108,9 @@ def main(argv=None) -> int:
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip without extension (.npz and .wav)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--iterations", type=int, default=10, help="the three statistics settle within 1-3 %% by 8")
+    p.add_argument("--joints", type=int, nargs="+", choices=MICRO_JOINTS, metavar="J",
+                   help="refit only these joints, holding the others at calibration.json's (default: all of "
+                        f"{list(MICRO_JOINTS)})")
     p.add_argument("--out", default=str(CALIBRATION_JSON))
     args = p.parse_args(argv)
     clip = Path(args.clip)
@@ -112,7 +119,12 @@ def main(argv=None) -> int:
             print(f"error: {clip.with_suffix(suffix)}: not found", file=sys.stderr)
             return 2
     cal = load_calibration()
-    fitted = fit(clip, tuple(args.seeds), args.iterations)
+    held = [j for j in MICRO_JOINTS if args.joints and j not in args.joints]
+    missing = [j for j in held if j not in cal.micro_motion]
+    if missing:
+        print(f"error: --joints: joints {missing} have no stored fit to hold; refit them too", file=sys.stderr)
+        return 2
+    fitted = fit(clip, tuple(args.seeds), args.iterations, keep={j: cal.micro_motion[j] for j in held})
     Path(args.out).write_text(json.dumps(to_json(replace(cal, micro_motion=fitted)), indent=1) + "\n")
     print(f"wrote {args.out}")
     return 0

@@ -7,7 +7,8 @@ head (speaking nods on stressed words, per-sentence tilts/turns, listening nods 
 -> face (jaw from the agent's speech envelope, blinks, brows, smiles, mouth shapes; face.py) -> micro-motion:
 low-passed rotation noise on the torso, neck, head and arm joints (real speakers are never still), slow and quick,
 its sizes and bandwidth per joint fitted to the real clip (calibration.json ``micro_motion``), louder with the agent's
-own speech and calmer while it listens. The collars, elbows and wrists end within soft range-of-motion limits
+own speech and calmer while it listens -> posture reflexes: the spine and neck counter quick turns beneath them
+(reflex.py). The collars, elbows and wrists end within soft range-of-motion limits
 (``JOINT_SOFT_LIMITS_RAD``, at the real clip's tail).
 The agent's own voice activity (``vad``) and the user's (``user_vad``) come out as per-frame labels, and
 ``gesture_poses``: the poses without the micro-motion of ``LAYERED_MICRO_JOINTS``, which the agent adds at run time.
@@ -33,6 +34,7 @@ from gesture.synth.gestures import ArmTracks, plan_arms
 from gesture.synth.hands import blend_hands
 from gesture.synth.ik import TwoBoneChain
 from gesture.synth.posture import Posture, plan_posture
+from gesture.synth.reflex import PostureReflexes
 from gesture.synth.tracks import KeyTrack, add_bump, lowpass_noise, smooth_noise
 
 LISTENING_ENERGY = 0.55  # relative liveliness while listening (1 while speaking)
@@ -369,6 +371,7 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
         local[:, j] = local[:, j] @ _aa(scale * offset)
         if j not in LAYERED_MICRO_JOINTS:
             gesture_local[:, j] = local[:, j]
+    local = PostureReflexes(fps).step(local)  # on the layered joints: the runtime layer runs them after its noise
     poses, gesture_poses = (finish_poses(m, solver.base[22], env, arms) for m in (local, gesture_local))
     return AgentMotion(
         poses=poses, trans=posture.trans.astype(np.float32), expressions=expressions,

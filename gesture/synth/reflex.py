@@ -1,0 +1,109 @@
+"""Posture reflexes (not in the reference): the chest and the head hold their course in space.
+
+A real speaker's spine turns against the quick turns of his pelvis, and his neck against his chest's. On the BEAT2
+clip (2_scott_0_1_1), the world angular velocity of each part of the chain, band-passed at 2-8 Hz: the pelvis and
+the spine above it are correlated -0.76, so the chest's quick turning has 0.23 of the variance its parts would give if
+they were independent; the neck and head against the chest, -0.52 (slow, below 2 Hz: -0.42). Micro-motion drawn
+independently per joint has none of that: the synthetic agent and the default agent had 1.3x his head's median speed
+in space and 2x its angular acceleration, and 2.3x the chest's, with every joint's own (local) speed matched.
+
+So each chain counters a share of its end's deviation from that end's slow course: the course is a one-pole low-pass
+of the end's world rotation (its quaternion, filtered and normalised), and the counter-turn, spread evenly over the
+chain's joints, is ``-share * log(course^T end)``, turning about the end's own axis. The shares and cutoffs bring the
+default agent's chest and head to the speaker's speeds and accelerations in space (0.8-1.1x) while the local speeds
+of spine, neck and head stay as they were within 0.1.
+
+Causal and frame by frame: the whole-session form (the synthetic agent) and the streamed one (the runtime layer,
+``gesture.micro_motion``) give the same motion. The pelvis (joint 0) is the root: its local rotation is its world one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import lfilter
+
+from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_quaternion, quaternion_to_matrix
+
+PELVIS = 0
+
+
+@dataclass(frozen=True)
+class Reflex:
+    """A chain of joints that counters ``share`` of its end's turning faster than ``course_hz``."""
+
+    joints: tuple[int, ...]
+    share: float
+    course_hz: float
+
+
+CHEST = Reflex(joints=(3, 6, 9), share=0.7, course_hz=1.0)  # spine1-3 under the chest (spine3)
+HEAD = Reflex(joints=(12, 15), share=0.5, course_hz=0.5)  # neck and head, above the chest
+REFLEXES = (CHEST, HEAD)  # in this order: the head's parent is the chest after its reflex
+
+
+class CourseFilter:
+    """A rotation's slow course, frame by frame: a one-pole low-pass of its quaternion (kept in one hemisphere)."""
+
+    def __init__(self, cutoff_hz: float, fps: float) -> None:
+        self.alpha = 1.0 - float(np.exp(-2 * np.pi * cutoff_hz / fps))
+        self.reset()
+
+    def reset(self) -> None:
+        self.state: np.ndarray | None = None  # (4,) the filter's last output, unnormalised
+        self.last: np.ndarray | None = None  # (4,) the last input quaternion, as signed
+
+    def step(self, rotations: np.ndarray) -> np.ndarray:
+        """(F, 3, 3) world rotations -> (F, 3, 3) their course, each frame's from the frames up to it."""
+        q = matrix_to_quaternion(rotations)  # (F, 4)
+        previous = q[:1] if self.last is None else self.last[None]
+        flips = np.sign((q * np.concatenate([previous, q[:-1]])).sum(-1))  # (F,) each against the frame before
+        q = q * np.cumprod(np.where(flips == 0, 1.0, flips))[:, None]
+        start = q[0] if self.state is None else self.state
+        course, _ = lfilter([self.alpha], [1.0, self.alpha - 1.0], q, axis=0, zi=((1 - self.alpha) * start)[None])
+        self.state, self.last = course[-1], q[-1]
+        return quaternion_to_matrix(course)
+
+
+def chain_world(local: np.ndarray, parent: np.ndarray, joints: tuple[int, ...]) -> np.ndarray:
+    """(F, 55, 3, 3) local rotations, (F, 3, 3) the chain's parent in the world -> (F, 3, 3) its end in the world."""
+    world = parent
+    for j in joints:
+        world = world @ local[:, j]
+    return world
+
+
+def counter_turn(local: np.ndarray, parent: np.ndarray, reflex: Reflex, course: CourseFilter) -> np.ndarray:
+    """Turns the chain's joints in place (``local`` (F, 55, 3, 3)) against the end's deviation from its course;
+    returns the end's new world rotation (F, 3, 3)."""
+    end = chain_world(local, parent, reflex.joints)
+    deviation = matrix_to_axis_angle(np.swapaxes(course.step(end), -1, -2) @ end)  # (F, 3) in the end's frame
+    turn_world = np.einsum("fij,fj->fi", end, -reflex.share / len(reflex.joints) * deviation)  # (F, 3) per joint
+    world = parent
+    for j in reflex.joints:
+        joint_world = world @ local[:, j]
+        in_joint = np.einsum("fji,fj->fi", joint_world, turn_world)  # (F, 3) the same turn in the joint's frame
+        local[:, j] = local[:, j] @ axis_angle_to_matrix(in_joint)
+        world = world @ local[:, j]
+    return world
+
+
+class PostureReflexes:
+    """`step(local (F, 55, 3, 3))` -> the same local rotations with the chest's and the head's reflexes; `reset()`
+    per session."""
+
+    def __init__(self, fps: float, reflexes: tuple[Reflex, ...] = REFLEXES) -> None:
+        self.reflexes = reflexes
+        self.courses = [CourseFilter(r.course_hz, fps) for r in reflexes]
+
+    def reset(self) -> None:
+        for course in self.courses:
+            course.reset()
+
+    def step(self, local: np.ndarray) -> np.ndarray:
+        local = np.array(local, np.float64)  # (F, 55, 3, 3)
+        parent = local[:, PELVIS]
+        for reflex, course in zip(self.reflexes, self.courses):
+            parent = counter_turn(local, parent, reflex, course)
+        return local
