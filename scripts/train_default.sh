@@ -5,6 +5,8 @@
 # quantizers, so it never changes the LM tokens.
 #
 #   bash scripts/train_default.sh                 # the shipped run (about 1.5 hours of wall time on 2 cores)
+#   CODEC_REGIONS=lower CODECS_FROM=runs/default_v7 WORK=runs/default_v8 bash scripts/train_default.sh
+#                                                 # only the lower codec anew (the other regions' data unchanged)
 #   SESSIONS=2 CODEC_SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_REGIONS=upper DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
 #
 # Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists
@@ -27,6 +29,8 @@ CODEC_STEPS=${CODEC_STEPS:-}  # every region, when set (tiny runs); otherwise ea
 UPPER_CODEC_STEPS=${UPPER_CODEC_STEPS:-${CODEC_STEPS:-12000}}  # held out (region alone) 16.0 mm at 8000 steps
 LOWER_CODEC_STEPS=${LOWER_CODEC_STEPS:-${CODEC_STEPS:-5000}}  # held out 14.3 mm at 1500 steps, still falling
 FACE_CODEC_STEPS=${FACE_CODEC_STEPS:-${CODEC_STEPS:-5000}}  # the face needs more steps to carry blinks as well as the jaw
+CODEC_REGIONS=${CODEC_REGIONS:-upper lower face}  # the codecs trained here; the others are copied from ...
+CODECS_FROM=${CODECS_FROM:-}  # ... this earlier run's $WORK (codecs/<region>, codec_<region>.json, its wall time)
 DECODER_CONFIG=${DECODER_CONFIG:-configs/codec/default_small_finetune.yaml}
 DECODER_REGIONS=${DECODER_REGIONS:-}  # none for the current ship (configs/codec/default_small_finetune.yaml says why)
 DECODER_STEPS=${DECODER_STEPS:-}  # every region, when set (tiny runs); otherwise each region's own below
@@ -65,10 +69,26 @@ mix_data() {  # mix_data DIR N: a BEAT2-layout directory of the first N syntheti
   fi
 }
 
-train_codecs() {  # the three regions in parallel, each niced and single-threaded
+reuse_codec() {  # reuse_codec REGION: an earlier run's codec, when its region's data did not change
+  if [ -z "$CODECS_FROM" ]; then
+    echo "CODEC_REGIONS=\"$CODEC_REGIONS\" leaves out $1: set CODECS_FROM to the run to copy it from" >&2
+    return 1
+  fi
+  mkdir -p "$WORK/codecs"
+  rm -rf "$WORK/codecs/$1"
+  cp -r "$CODECS_FROM/codecs/$1" "$WORK/codecs/"
+  cp "$CODECS_FROM/codec_$1.json" "$WORK/"
+  grep "^codec_$1	" "$CODECS_FROM/wall_times.tsv" >> "$TIMES"
+}
+
+train_codecs() {  # the regions of $CODEC_REGIONS in parallel, each niced and single-threaded
   local region steps pids=()
   declare -A region_steps=([upper]=$UPPER_CODEC_STEPS [lower]=$LOWER_CODEC_STEPS [face]=$FACE_CODEC_STEPS)
   for region in upper lower face; do
+    if [[ " $CODEC_REGIONS " != *" $region "* ]]; then
+      reuse_codec "$region"
+      continue
+    fi
     steps=${region_steps[$region]}
     timed "codec_$region" "${NICE[@]}" "$PY" -m gesture.train_codec --config "$CODEC_CONFIG" --region "$region" \
       --data "$WORK/cache" --out "$WORK/codecs/$region" --steps "$steps" > "$WORK/codec_$region.json" \

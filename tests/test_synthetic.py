@@ -20,6 +20,7 @@ from gesture.synth.agent import (MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_M
 from gesture.synth.build import generate_dataset, generate_session, generator_fingerprint, main as synthetic_main
 from gesture.synth.calibration import MicroNoise
 from gesture.config import MicroMotionConfig
+from gesture.eval.realism import body_frame_joints
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig, build_synth_config, load_synth_config
 from gesture.synth.conversation import AGENT, USER, build_conversation
 from gesture.synth.face import FACE_PATTERNS
@@ -171,7 +172,7 @@ def test_arm_ik_eases_into_full_extension_and_joint_angles_are_soft_limited():
 
 def test_feet_planted_and_on_the_floor(session):
     contacts = contacts_from_motion(session["poses"], session["trans"])  # (T, 4)
-    assert contacts.mean() > 0.9
+    assert contacts.mean() > 0.8  # the agent paces, as the real speaker does (his feet: in contact in 0.85 of frames)
     soles = session["joints"][:, [10, 11], 1]
     assert np.abs(np.median(soles, axis=0)).max() < 0.02
 
@@ -181,7 +182,7 @@ def test_strokes_land_on_stressed_words():
     cfg = SynthConfig(test_fraction=0.5)
     conv = build_conversation(cfg, np.random.default_rng([7, 1]), 60.0)
     motion = synthesize_agent_motion(cfg, np.random.default_rng([7, 1, 1]), conv, micro={})
-    joints, _ = forward_kinematics_np(Skeleton.default(), motion.poses, motion.trans)
+    joints = body_frame_joints(motion.poses, Skeleton.default())  # the strokes, not the pacing under them
     speed = _speed(joints)[:, [20, 21]].max(1)  # (T,) faster wrist
     window = 5
     padded = np.pad(speed, window, mode="edge")

@@ -1,8 +1,10 @@
 """Stance and posture: planted feet with stance changes, weight shifts, sway and breathing.
 
-The feet are world-space targets for the leg IK: flat on the floor, planted except while stepping. Every
-``STANCE_HOLD_S`` the agent changes its stance: one foot (or both, one after the other) lifts 4-6 cm and moves to a
-new stance of its own width and fore-aft stagger (``STANCE_*``, against the real clip's feet). The pelvis shifts its
+The feet are world-space targets for the leg IK: flat on the floor, planted except while stepping. Like the real
+speaker, the agent paces: after a hold of ``BOUT_HOLD_S`` (longer while listening) comes a bout of steps, either
+one foot to a new stance in place or both feet in turn to a new place (two steps each when it is far), each foot
+lifting 4-6 cm; the stances have their own width and fore-aft stagger (``STANCE_*``), and the place wanders
+(``PACE_*``) around where the agent started (all against the real clip's feet). The pelvis shifts its
 weight towards one foot or the other (the unloaded hip drops a little, the knees dip, and the spine leans back to
 keep the head level), sways slowly, and breathes; it is lowered where a wide or staggered stance would otherwise
 stretch a leg straight.
@@ -15,26 +17,36 @@ from dataclasses import dataclass
 import numpy as np
 
 from gesture.body.skeleton import Skeleton
-from gesture.synth.tracks import KeyTrack, add_bump, smooth_noise
+from gesture.synth.tracks import KeyTrack, add_bump, lowpass_noise, smooth_noise
 
 TRANS_Y_M = 1.27  # pelvis translation height: legs slightly bent, feet on the floor (see gesture.body.skeleton)
-FOOT_STEP_S = 0.55  # one foot step (lift, swing, plant), not the 80 ms step of the loop
+FOOT_STEP_S = (0.5, 1.0)  # one foot step (lift, swing, plant), not the 80 ms step of the loop
 FOOT_LIFT_M = (0.04, 0.06)
-FOOT_MAX_RATE_MPS = 1.0
-# The stance against the real clip (2_scott_0_1_1, feet in the world): full width p5/p50/p95 0.12/0.23/0.37 m,
-# fore-aft stagger between the feet p5/p95 -0.31/+0.31 m, the feet moving in ~20 % of its frames (mostly short
-# shuffles; the synthetic agent makes fewer, clean steps: its feet stay planted in >= 90 % of frames).
-STANCE_HOLD_S = (5.0, 14.0)  # between stance changes
+FOOT_MAX_RATE_MPS = 1.5
+STEP_GAP_S = (0.0, 0.2)  # between the steps of one bout
+# The stance against the real clip (2_scott_0_1_1, feet in the world): full width p5/p50/p95 0.20/0.28/0.44 m,
+# fore-aft stagger between the feet p5/p95 -0.31/+0.31 m. He paces while he speaks: each foot steps 17-18 times a
+# minute (a step: the ankle moving faster than 0.1 m/s and ending >= 3 cm away), steps of median 0.20-0.27 m (p90
+# 0.41-0.59 m) taking 0.5-0.8 s, the feet moving in 20-22 % of the frames; his pelvis travels a median 0.11 m in a
+# second (p90 0.29 m) and spreads with std 0.12 m sideways and 0.24 m fore-aft over the minute.
 STANCE_HALF_WIDTH_M = (0.06, 0.18)
 STANCE_STAGGER_STD_M = 0.19
 STANCE_STAGGER_MAX_M = 0.4
-ONE_FOOT_PROB = 0.6  # a stance change moves one foot; else both, one after the other
-STANCE_DRIFT_M = 0.06  # the stance's centre wanders (a random walk with this step, pulled back to the start)
+BOUT_HOLD_S = (0.5, 3.5)  # between bouts of steps while speaking (3x longer at the listening energy, 0.55)
+ONE_FOOT_PROB = 0.25  # a bout moves one foot (a new stance in place); else both feet, in turn, to a new place
+PACE_STD_M = (0.14, 0.3)  # each bout moves the stance's centre by about this much (sideways, fore-aft) ...
+PACE_PULL = 0.25  # ... and this share of the way back to where the agent started
+STRIDE_MAX_M = 0.35  # a foot goes further than this in two steps (halfway, then there)
 # The pelvis against the feet (real: its offset from the feet's centre has std 0.07 m sideways, 0.05 m fore-aft,
 # 0.03 m in height)
 WEIGHT_SHIFT_S = (3.0, 10.0)  # between weight shifts
 WEIGHT_SHIFT_SHARE = 0.55  # of the way from the feet's centre to the loaded foot
 KNEE_DIP_M = 0.035  # the pelvis lowers this much with the weight fully on one foot
+# Over his planted feet the real speaker's pelvis never rests: its offset from the feet's centre (std 0.07 m sideways,
+# 0.05 m fore-aft) changes at a median 0.14 m/s. Weight shifts give the offset's spread; a slow sway of the pelvis
+# over the feet (low-passed noise) gives its motion.
+PELVIS_SWAY_M = (0.045, 0.045)  # sideways, fore-aft std while speaking (0.6 + 0.4 x energy of it)
+PELVIS_SWAY_HZ = 0.4
 LEG_REACH_SHARE = 0.97  # hip to ankle at most this share of the leg's length: the knees never lock
 
 
@@ -57,6 +69,48 @@ def _stance(rng: np.random.Generator, centre: np.ndarray, ankle_z: float) -> np.
                      [centre[0] - half_width, ankle_z + centre[1] - stagger / 2]])
 
 
+def plan_steps(rng: np.random.Generator, n_frames: int, fps: float, energy: np.ndarray,
+               ankle_z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The feet's bouts of steps: (T, 2 L/R, 2 xz) floor positions, (T, 2) lift (m), (T, 2) planted (1/0)."""
+    times = np.arange(n_frames) / fps
+    duration = n_frames / fps
+    centre = np.zeros(2)
+    stance = _stance(rng, centre, ankle_z)
+    feet = [KeyTrack(stance[k], max_rate=FOOT_MAX_RATE_MPS) for k in range(2)]  # (x, z) per foot
+    lift = np.zeros((n_frames, 2))
+    planted = np.ones((n_frames, 2))
+
+    def step(foot: int, start: float, target: np.ndarray) -> float:
+        """One step of ``foot`` from ``start`` (s) to ``target`` (xz); returns when it is planted."""
+        length = rng.uniform(*FOOT_STEP_S)
+        feet[foot].hold(start)
+        feet[foot].key(start + length, target)
+        end = feet[foot].last_time  # later than asked when the step is long (FOOT_MAX_RATE_MPS)
+        add_bump(lift[:, foot], fps, (start + end) / 2, (end - start) / 2, 0.0, (end - start) / 2,
+                 rng.uniform(*FOOT_LIFT_M))
+        planted[int(start * fps): int(end * fps) + 2, foot] = 0.0
+        return end
+
+    t = rng.uniform(*BOUT_HOLD_S)
+    while t + 4 * FOOT_STEP_S[1] < duration:
+        first = int(rng.integers(2))
+        if rng.random() < ONE_FOOT_PROB:
+            target = _stance(rng, centre, ankle_z)[first]
+            t = step(first, t, target)
+        else:
+            centre = (1 - PACE_PULL) * centre + rng.normal(0.0, PACE_STD_M)
+            stance = _stance(rng, centre, ankle_z)
+            origin = [feet[k].last_value for k in range(2)]
+            far = max(np.linalg.norm(stance[k] - origin[k]) for k in range(2)) > STRIDE_MAX_M
+            for share in (0.5, 1.0) if far else (1.0,):
+                for foot in (first, 1 - first):
+                    t = step(foot, t, origin[foot] + share * (stance[foot] - origin[foot])) + rng.uniform(*STEP_GAP_S)
+        calm = 1.0 / energy[min(int(t * fps), n_frames - 1)] ** 2  # listening: about 3x longer holds
+        t += calm * rng.uniform(*BOUT_HOLD_S)
+    xz = np.stack([f.evaluate(times) for f in feet], 1)  # (T, 2, 2)
+    return xz, lift, planted
+
+
 def _pelvis_height(skeleton: Skeleton, trans_xz: np.ndarray, ankles: np.ndarray, nominal: np.ndarray) -> np.ndarray:
     """(T,) the pelvis translation height: ``nominal``, lowered where a hip would be too far from its ankle."""
     rest = skeleton.rest_joints.astype(np.float64)
@@ -77,25 +131,7 @@ def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np
     duration = n_frames / fps
     ankle_y = float(skeleton.rest_joints[7, 1]) + 1.3
     ankle_z = float(skeleton.rest_joints[7, 2])
-    c = np.zeros(2)
-    stance = _stance(rng, c, ankle_z)
-    feet = [KeyTrack(stance[k], max_rate=FOOT_MAX_RATE_MPS) for k in range(2)]  # (x, z) per foot
-    lift = np.zeros((n_frames, 2))
-    planted = np.ones((n_frames, 2))
-    t = rng.uniform(*STANCE_HOLD_S)
-    while t + 2 * FOOT_STEP_S + 0.3 < duration:
-        c = 0.6 * c + rng.normal(0.0, STANCE_DRIFT_M, 2)
-        stance = _stance(rng, c, ankle_z)
-        first = int(rng.integers(2))
-        moving = (first,) if rng.random() < ONE_FOOT_PROB else (first, 1 - first)
-        for k, foot in enumerate(moving):
-            start = t + k * (FOOT_STEP_S + 0.1)
-            feet[foot].hold(start)
-            feet[foot].key(start + FOOT_STEP_S, stance[foot])
-            add_bump(lift[:, foot], fps, start + FOOT_STEP_S / 2, FOOT_STEP_S / 2, 0.0, FOOT_STEP_S / 2, rng.uniform(*FOOT_LIFT_M))
-            planted[int(start * fps): int((start + FOOT_STEP_S) * fps) + 2, foot] = 0.0
-        t += len(moving) * (FOOT_STEP_S + 0.1) + rng.uniform(*STANCE_HOLD_S)
-    xz = np.stack([f.evaluate(times) for f in feet], 1)  # (T, 2, 2)
+    xz, lift, planted = plan_steps(rng, n_frames, fps, energy, ankle_z)
     ankles = np.stack([xz[..., 0], ankle_y + lift, xz[..., 1]], -1)  # (T, 2, 3)
 
     shift = KeyTrack(0.0)  # +1: weight on the left foot
@@ -108,7 +144,8 @@ def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np
     sway = smooth_noise(rng, n_frames, fps, 0.15, 5) * (0.6 + 0.4 * energy[:, None])  # (T, 5)
     mid = xz.mean(1)  # (T, 2) the feet's centre
     to_left = (xz[:, 0] - xz[:, 1]) / 2  # (T, 2) from the centre to the left foot
-    trans_xz = mid + WEIGHT_SHIFT_SHARE * weight[:, None] * to_left + sway[:, [0, 2]] * (0.008, 0.01)
+    pelvis_sway = lowpass_noise(rng, n_frames, fps, PELVIS_SWAY_HZ, 2) * PELVIS_SWAY_M * (0.6 + 0.4 * energy[:, None])
+    trans_xz = mid + WEIGHT_SHIFT_SHARE * weight[:, None] * to_left + sway[:, [0, 2]] * (0.008, 0.01) + pelvis_sway
     trans_xz[:, 1] -= ankle_z  # the feet stand ankle_z from the pelvis (z)
     nominal = TRANS_Y_M - KNEE_DIP_M * np.abs(weight) + 0.002 * sway[:, 1]
     trans = np.stack([trans_xz[:, 0], _pelvis_height(skeleton, trans_xz, ankles, nominal), trans_xz[:, 1]], -1)
