@@ -347,3 +347,28 @@ def test_agent_driven_by_the_clip_speech_matches_its_statistics():
         assert 0.8 <= ratio <= 1.25, (group, "fast_power_share", ratio)
     assert abs(np.mean([r["ratios"]["l1div"] for r in reports]) - 1) <= 0.15
     assert min(r["protocol"]["beat_align"] for r in reports) > 0.5  # real clip: 0.71; the uncalibrated agent: 0.09
+
+
+@pytest.mark.slow
+@needs_clip
+def test_refit_holds_the_kept_joints_and_fits_the_others():
+    """`synth_fit --joints`: the joints left out keep their stored noise; the fitted ones move towards the clip."""
+    from gesture.eval.synth_fit import MICRO_JOINTS, fit
+    from gesture.synth.calibration import load_calibration
+    from gesture.synth.recording import recognised_words
+    from tests.data.beat2_clip import CLIP_WAV
+
+    stored = load_calibration().micro_motion
+    keep = {j: stored[j] for j in MICRO_JOINTS if j not in (12, 15)}
+    fitted = fit(CLIP_NPZ.with_suffix(""), seeds=(0,), iterations=1, words=recognised_words(CLIP_WAV), log=lambda _: None,
+                 keep=keep)
+    assert set(fitted) == set(MICRO_JOINTS)
+    assert all(fitted[j] is keep[j] for j in keep)
+    assert all(not np.allclose(fitted[j].std_rad, stored[j].std_rad) for j in (12, 15))
+
+
+def test_refit_names_a_joint_it_cannot_fit():
+    from gesture.eval.synth_fit import main as fit_main
+
+    with pytest.raises(SystemExit):
+        fit_main(["--joints", "22"])
