@@ -29,7 +29,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.config import IdleGateConfig
 from gesture.synth.agent import (MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
                                  MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, OWN_GATES, micro_gate)
@@ -220,11 +220,11 @@ class MicroMotion:
         """(F, 55, 3) axis-angle and this step's agent audio (float in [-1, 1], or None: silent) -> the same poses
         with each frame's offsets post-multiplied on `joints`, then the posture reflexes (gesture.synth.reflex)."""
         offsets = np.stack([self.offsets(rms) for rms in frame_rms(agent_pcm, len(poses))])  # (F, J, 3)
-        local = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (F, 55, 3, 3)
-        local[:, self.joints] = local[:, self.joints] @ axis_angle_to_matrix(offsets)
+        local = axis_angle_to_matrix_np(np.asarray(poses, np.float64))  # (F, 55, 3, 3)
+        local[:, self.joints] = local[:, self.joints] @ axis_angle_to_matrix_np(offsets)
         local = self.reflexes.step(local)
         out = poses.copy()
-        out[:, self.changed] = matrix_to_axis_angle(local[:, self.changed])
+        out[:, self.changed] = matrix_to_axis_angle_np(local[:, self.changed])
         return out
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
-from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_quaternion, quaternion_to_matrix
+from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 
 PELVIS = 0
 
@@ -43,6 +43,21 @@ HEAD = Reflex(joints=(12, 15), share=0.5, course_hz=0.5)  # neck and head, above
 REFLEXES = (CHEST, HEAD)  # in this order: the head's parent is the chest after its reflex
 
 
+def _quaternion(rotations: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) -> (F, 4) (w, x, y, z), in numpy alone (the runtime layer's step is a few frames)."""
+    aa = matrix_to_axis_angle_np(rotations)  # (F, 3)
+    angle = np.linalg.norm(aa, axis=-1, keepdims=True)
+    return np.concatenate([np.cos(angle / 2), aa * np.sinc(angle / (2 * np.pi)) / 2], -1)  # sin(a/2)/a = sinc/2
+
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    """(F, 4) (w, x, y, z), any length -> (F, 3, 3)."""
+    w, x, y, z = (q / np.linalg.norm(q, axis=-1, keepdims=True)).T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
+
+
 class CourseFilter:
     """A rotation's slow course, frame by frame: a one-pole low-pass of its quaternion (kept in one hemisphere)."""
 
@@ -56,14 +71,14 @@ class CourseFilter:
 
     def step(self, rotations: np.ndarray) -> np.ndarray:
         """(F, 3, 3) world rotations -> (F, 3, 3) their course, each frame's from the frames up to it."""
-        q = matrix_to_quaternion(rotations)  # (F, 4)
+        q = _quaternion(rotations)  # (F, 4)
         previous = q[:1] if self.last is None else self.last[None]
         flips = np.sign((q * np.concatenate([previous, q[:-1]])).sum(-1))  # (F,) each against the frame before
         q = q * np.cumprod(np.where(flips == 0, 1.0, flips))[:, None]
         start = q[0] if self.state is None else self.state
         course, _ = lfilter([self.alpha], [1.0, self.alpha - 1.0], q, axis=0, zi=((1 - self.alpha) * start)[None])
         self.state, self.last = course[-1], q[-1]
-        return quaternion_to_matrix(course)
+        return _rotation(course)
 
 
 def chain_world(local: np.ndarray, parent: np.ndarray, joints: tuple[int, ...]) -> np.ndarray:
@@ -78,13 +93,13 @@ def counter_turn(local: np.ndarray, parent: np.ndarray, reflex: Reflex, course: 
     """Turns the chain's joints in place (``local`` (F, 55, 3, 3)) against the end's deviation from its course;
     returns the end's new world rotation (F, 3, 3)."""
     end = chain_world(local, parent, reflex.joints)
-    deviation = matrix_to_axis_angle(np.swapaxes(course.step(end), -1, -2) @ end)  # (F, 3) in the end's frame
+    deviation = matrix_to_axis_angle_np(np.swapaxes(course.step(end), -1, -2) @ end)  # (F, 3) in the end's frame
     turn_world = np.einsum("fij,fj->fi", end, -reflex.share / len(reflex.joints) * deviation)  # (F, 3) per joint
     world = parent
     for j in reflex.joints:
         joint_world = world @ local[:, j]
         in_joint = np.einsum("fji,fj->fi", joint_world, turn_world)  # (F, 3) the same turn in the joint's frame
-        local[:, j] = local[:, j] @ axis_angle_to_matrix(in_joint)
+        local[:, j] = local[:, j] @ axis_angle_to_matrix_np(in_joint)
         world = world @ local[:, j]
     return world
 
