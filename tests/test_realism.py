@@ -145,3 +145,19 @@ def test_the_ceilings_codecs_follow_the_agents_config(tmp_path):
     assert R.config_codecs(R.DEFAULT_APP_CONFIG) == R.ROOT / "checkpoints" / "codecs"
     moved = R.config_codecs(R.DEFAULT_APP_CONFIG, ["gesture.codec_checkpoints=runs/candidate/codecs"])
     assert moved == R.ROOT / "runs" / "candidate" / "codecs"
+
+
+def test_steps_are_counted_and_the_pelvis_travel_measured():
+    n = 60 * FPS
+    poses, trans = np.zeros((n, 55, 3)), np.zeros((n, 3))
+    trans[:, 2] = np.repeat(0.2 * np.arange(n // (4 * FPS)), 4 * FPS)  # the body moves 0.2 m every 4 s ...
+    trans[:, 2] = np.convolve(trans[:, 2], np.ones(10) / 10, mode="same")  # ... over 0.4 s: 15 steps a minute
+    trans[-10:, 2] = trans[-11, 2]
+    feet = R.feet_stats(poses, trans, Skeleton.default())
+    assert feet["steps_per_minute"] == pytest.approx(15, abs=1)
+    assert feet["pelvis_travel_mps"] == pytest.approx(0.0, abs=1e-6)  # most seconds hold still ...
+    trans[:, 0] = 0.1 * np.arange(n) / FPS  # ... until the body drifts sideways at 0.1 m/s
+    assert R.feet_stats(poses, trans, Skeleton.default())["pelvis_travel_mps"] == pytest.approx(0.1, abs=0.01)
+    trans[:, 0] = 0.0
+    trans[:, 2] = 0.01 * np.sin(np.arange(n) / FPS * 2 * np.pi)  # 1 cm of sway is not a step
+    assert R.feet_stats(poses, trans, Skeleton.default())["steps_per_minute"] == 0

@@ -24,8 +24,9 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - gesture strokes per minute (peaks of wrist speed in the body frame, ``STROKE_*``) and the distribution of hand
   height (wrist above the pelvis in the body frame: percentiles, given as differences from the real clip's in
   metres, and the overlap of the two histograms, 1 = the same distribution);
-- the feet: the fraction of frames an ankle is planted (moving over the floor slower than ``PLANTED_MPS``) and the
-  90th percentile of its speed (steps);
+- the feet: the fraction of frames an ankle is planted (moving over the floor slower than ``PLANTED_MPS``), the
+  90th percentile of its speed, its steps per minute (``STEP_*``), and how far the pelvis travels over the floor in
+  a second (median; the real speaker paces);
 - blinks, brow raises and smiles per minute (events of the avatar's expression activations, ``FACE_EVENTS``);
 - per joint group, the share of its angular velocity's power at ``FAST_BAND_HZ`` (``spectra``: how much of its
   motion is quick small movement rather than slow drift; the real speaker's spine has about a third there);
@@ -51,7 +52,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
-from scipy.ndimage import gaussian_filter1d, median_filter
+from scipy.ndimage import binary_closing, gaussian_filter1d, label, median_filter
 from scipy.signal import find_peaks
 
 from core.errors import DataError
@@ -85,6 +86,7 @@ WORLD_PARTS = {"chest": (0, 3, 6, 9), "head": (0, 3, 6, 9, 12, 15)}  # root-to-p
 EDGE_S = 2.0
 PELVIS, WRISTS, ANKLES = 0, (20, 21), (7, 8)
 PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
+STEP_MPS, STEP_MIN_M, STEP_SMOOTH_FRAMES = 0.1, 0.03, 1.0  # a step: an ankle faster than this, ending this far away
 STROKE_SPEED_MPS = 0.35  # a stroke: a wrist speed peak at least this fast ...
 STROKE_PROMINENCE_MPS = 0.2  # ... standing out this much from its surroundings ...
 STROKE_MIN_GAP_S = 0.25  # ... and this far from the previous one (per wrist)
@@ -243,13 +245,28 @@ def hand_stats(joints: np.ndarray, fps: float = MOTION_FPS) -> dict:
             "hand_height_median_m": float(p50), "hand_height_p90_m": float(p90)}
 
 
+def step_count(ankle_xz: np.ndarray, fps: float = MOTION_FPS) -> int:
+    """(T, 2) one ankle's floor position -> its steps: spans moving faster than ``STEP_MPS`` (smoothed over
+    ``STEP_SMOOTH_FRAMES``; gaps of a frame closed) that end at least ``STEP_MIN_M`` from where they began."""
+    speed = gaussian_filter1d(np.linalg.norm(np.diff(ankle_xz, axis=0), axis=-1) * fps, STEP_SMOOTH_FRAMES)
+    moving, _ = label(binary_closing(speed > STEP_MPS, np.ones(3)))
+    spans = [np.flatnonzero(moving == k) for k in range(1, moving.max() + 1)]
+    return sum(np.linalg.norm(ankle_xz[span[-1] + 1] - ankle_xz[span[0]]) >= STEP_MIN_M for span in spans)
+
+
 def feet_stats(poses: np.ndarray, trans: np.ndarray, skeleton: Skeleton, fps: float = MOTION_FPS) -> dict:
     """The ankles' horizontal speed in the world (m/s): the fraction of frames they are planted, and its 90th
-    percentile (steps)."""
+    percentile (steps); steps per minute per ankle; how far the pelvis gets over the floor in one second (median, m/s)."""
     joints, _ = forward_kinematics_np(skeleton, np.asarray(poses, np.float32), np.asarray(trans, np.float32))
-    speed = np.linalg.norm(np.diff(joints[:, list(ANKLES)][..., [0, 2]], axis=0), axis=-1).reshape(-1) * fps
+    floor = joints[..., [0, 2]]  # (T, J, 2)
+    speed = np.linalg.norm(np.diff(floor[:, list(ANKLES)], axis=0), axis=-1).reshape(-1) * fps
+    minutes = len(joints) / fps / 60
+    second = int(round(fps))
+    travel = np.linalg.norm(floor[second:, PELVIS] - floor[:-second, PELVIS], axis=-1)
     return {"ankles_planted_fraction": float((speed < PLANTED_MPS).mean()),
-            "ankle_speed_p90": float(np.percentile(speed, 90))}
+            "ankle_speed_p90": float(np.percentile(speed, 90)),
+            "steps_per_minute": float(np.mean([step_count(floor[:, a], fps) for a in ANKLES]) / minutes),
+            "pelvis_travel_mps": float(np.median(travel))}
 
 
 def height_histogram(joints: np.ndarray) -> np.ndarray:
