@@ -1,4 +1,4 @@
-"""Stance and posture: planted feet with stance changes, weight shifts, sway and breathing.
+"""Stance and posture: pacing feet, weight shifts, sway and breathing.
 
 The feet are world-space targets for the leg IK: flat on the floor, planted except while stepping. Like the real
 speaker, the agent paces: after a hold of ``BOUT_HOLD_S`` (longer while listening) comes a bout of steps, either
