@@ -4,7 +4,8 @@ import copy
 import json
 from pathlib import Path
 
-from bench.quality import seed_summary
+from bench.quality import GROUP_RANGE, seed_summary
+from gesture.eval.realism import GOAL_GROUPS
 
 REPORT = json.loads((Path(__file__).resolve().parents[1] / "docs" / "realism_after.json").read_text())
 
@@ -12,12 +13,12 @@ REPORT = json.loads((Path(__file__).resolve().parents[1] / "docs" / "realism_aft
 def test_the_summary_of_the_readmes_seed_names_what_misses():
     summary = seed_summary(REPORT)
     groups = REPORT["generated"]["ratios"]["groups"]
-    outside = {f"{g}.{k}": round(v, 3) for g in ("wrists", "elbows", "neck_head", "spine") for k, v in groups[g].items()
-               if not 0.67 <= v <= 1.5}
-    assert summary["ratios_outside"] == outside
-    assert summary["all_met"] == (not outside and all(v for k, v in REPORT["generated"]["goals"].items()
-                                                      if k in ("groups_within_0.67_1.5", "l1div_within_25pct",
-                                                               "beat_align_within_0.15")))
+    listed = {name: groups[name.split(".")[0]][name.split(".")[1]] for name in summary["ratios_outside"]}
+    assert all(not GROUP_RANGE[0] <= value <= GROUP_RANGE[1] for value in listed.values())
+    assert all(GROUP_RANGE[0] <= value <= GROUP_RANGE[1] for g in GOAL_GROUPS for k, value in groups[g].items()
+               if f"{g}.{k}" not in listed)
+    assert summary["all_met"] == (not listed and REPORT["generated"]["goals"]["l1div_within_25pct"]
+                                  and REPORT["generated"]["goals"]["beat_align_within_0.15"])
     assert summary["l1div_ratio"] == round(REPORT["generated"]["ratios"]["l1div"], 3)
     assert set(summary["quick_share_ratio"]) == set(REPORT["generated"]["ratios"]["spectra"])
 

@@ -4,7 +4,7 @@ import numpy as np
 
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.eval.realism import WORLD_PARTS, world_rotations
-from gesture.synth.reflex import CHEST, HEAD, PostureReflexes, Reflex
+from gesture.synth.reflex import CHEST, HEAD, PostureReflexes, Reflex, chain_world
 
 FPS = 25.0
 
@@ -22,10 +22,7 @@ def swaying_body(n: int, pelvis_hz: float, seed: int = 0) -> np.ndarray:
 
 def world_speed(local: np.ndarray, part: str) -> np.ndarray:
     """(T, 55, 3, 3) local rotations -> (T-1,) rad per frame of the part's world rotation."""
-    chain = WORLD_PARTS[part]
-    world = local[:, chain[0]]
-    for j in chain[1:]:
-        world = world @ local[:, j]
+    world = chain_world(local, np.broadcast_to(np.eye(3), local[:, 0].shape), WORLD_PARTS[part])
     rel = np.swapaxes(world[:-1], -1, -2) @ world[1:]
     return np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1) / 2, -1, 1))
 

@@ -190,11 +190,10 @@ def fast_power_shares(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
 
 def world_rotations(poses: np.ndarray, chain: Sequence[int]) -> np.ndarray:
     """(T, J, 3) axis-angle -> (T, 3, 3): the world rotation of the last joint of ``chain`` (from the root down)."""
-    rot = axis_angle_to_matrix(np.asarray(poses, np.float64)[:, list(chain)])  # (T, len(chain), 3, 3)
-    world = rot[:, 0]
-    for k in range(1, len(chain)):
-        world = world @ rot[:, k]
-    return world
+    from gesture.synth.reflex import chain_world
+
+    local = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
+    return chain_world(local, np.broadcast_to(np.eye(3), local[:, 0].shape), tuple(chain))
 
 
 def world_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
