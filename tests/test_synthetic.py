@@ -164,6 +164,14 @@ def test_arm_ik_eases_into_full_extension_and_joint_angles_are_soft_limited():
     _, eased = TwoBoneChain(*bones, min_flex_rad=0.2, max_flex_step_rad=0.25).solve(*args)
     assert np.abs(np.diff(free)).max() > 0.4 and np.abs(np.diff(eased)).max() <= 0.25 + 1e-9
     assert np.isclose(eased[-1], free[-1])  # it catches up
+    slow = np.linspace(0.8, 1.1, 31)[:, None] * reach * out / np.linalg.norm(out)  # 5 mm per frame
+    n = len(slow)
+    args = (np.zeros((n, 3)), np.broadcast_to(np.eye(3), (n, 3, 3)), slow, np.broadcast_to([0.0, 0.0, -1.0], (n, 3)))
+    _, free = TwoBoneChain(*bones, min_flex_rad=0.2).solve(*args)
+    _, soft = TwoBoneChain(*bones, min_flex_rad=0.2, soft_reach=(0.93, 0.99)).solve(*args)
+    assert np.allclose(soft[:12], free[:12])  # within the knee: exact
+    assert np.abs(np.diff(free, 2)).max() > 0.07 and np.abs(np.diff(soft, 2)).max() < 0.01  # eased, not snapped
+    assert soft[-1] - free[-1] > 0.05  # past its length the arm stays bent
     aa = np.array([[0.0, 0.0, a] for a in np.linspace(0.0, 3.1, 32)])
     limited = np.linalg.norm(soft_limit_angle(aa, 2.2, 2.55), axis=-1)
     assert np.allclose(limited[aa[:, 2] <= 2.2], aa[aa[:, 2] <= 2.2, 2]) and limited.max() < 2.55

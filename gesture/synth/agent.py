@@ -46,8 +46,10 @@ MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two
 MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40 rad per frame at 25 fps)
 # Each elbow has its own, burstier gate (its log's std): with the arms' 0.7, the synthetic agent on the real clip's
 # speech held its elbows still (< 0.2 rad/s) in 0.73x the real speaker's share of frames (median of 8 seeds, 0.49x at
-# worst); with 0.85, in 1.09x (0.55x-2.68x), at 0.95x his median elbow speed (gate scaled to the same RMS).
-ELBOW_GATE_LOG_STD = 0.85
+# worst); with 0.85, in 1.04x (0.56x-2.55x), but partly because arms reaching past their length were pinned straight.
+# With ARM_SOFT_REACH they bend and move a little there: 0.85 gave 0.70x (0.41x-1.49x), 1.05 (elbows refitted) 0.93x
+# (0.43x-1.69x; seeds 0-2 0.92x, 0.70x, 0.88x), at 1.00x his median elbow speed (gate scaled to the same RMS).
+ELBOW_GATE_LOG_STD = 1.05
 # The wrists too: with the arms' gate, the synthetic agent on the real clip's speech held its wrists still in 0.78x the
 # speaker's share of frames (median of 8 seeds), and the agent, whose runtime layer adds this motion to decoded
 # wrists, in 0.52-0.63x on three of five seeds.
@@ -60,6 +62,10 @@ ROOT_MICRO_MAX_RAD = 0.45  # the pelvis's micro-motion turns it at most about th
 # feet a larger turn is a step, not a sway (the fitted noise's tail otherwise reaches ~1 rad)
 NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
 ARM_MIN_FLEX_RAD = 0.2  # the elbows never lock straight (real: the forearm points >= 0.135 forwards in 99 % of frames)
+# Wrist targets near or past the arm's full length are eased to at most this share of it (knee, cap; see
+# gesture.synth.ik): before, the arm snapped straight (the elbow 0.46 rad in 3 frames, the shoulder 7.7 rad/s in one),
+# and the shoulders' angular velocity had 3-26x the real speaker's power above 4 Hz on his clip's speech.
+ARM_SOFT_REACH = (0.93, 0.99)
 ARM_MAX_FLEX_STEP_RAD = 0.25  # per frame (real: the fastest joint turns 0.40 rad per frame), see gesture.synth.ik
 # The arm joints' range of motion (rad, the local rotation's angle): the calibrated micro-motion (std up to 0.59 rad per
 # axis on the elbows and wrists, gated up to 1.5x) on top of a flexed elbow or a bent wrist otherwise reaches ~3 rad.
@@ -266,7 +272,8 @@ class BodySolver:
         for side, sign in (("left", 1.0), ("right", -1.0)):
             _, sh, el, wr, hip, kn, an, _ = SIDE_JOINTS[side]
             self.arm_chains[side] = TwoBoneChain(rest[el] - rest[sh], rest[wr] - rest[el], np.array([0.0, -sign, 0.0]),
-                                                 min_flex_rad=ARM_MIN_FLEX_RAD, max_flex_step_rad=ARM_MAX_FLEX_STEP_RAD)
+                                                 min_flex_rad=ARM_MIN_FLEX_RAD, max_flex_step_rad=ARM_MAX_FLEX_STEP_RAD,
+                                                 soft_reach=ARM_SOFT_REACH)
             self.leg_chains[side] = TwoBoneChain(rest[kn] - rest[hip], rest[an] - rest[kn], np.array([1.0, 0.0, 0.0]),
                                                  min_flex_rad=0.05, max_flex_rad=1.2)
 

@@ -5,7 +5,9 @@ A chain root -> mid -> end (shoulder -> elbow -> wrist, hip -> knee -> ankle) ha
 (positive angles flex). Given the root's world position and its parent's world rotation, an end target
 and a pole direction (where the mid joint should point), we solve:
 1. the hinge angle theta with |b + R_h(theta) c| = |target - root| (clamped to a flexion range); with
-   ``max_flex_step_rad`` it changes at most that much per frame: near full extension the angle's derivative
+   ``soft_reach`` the distance is first eased towards a share of the chain's full length (near full extension the
+   flexion changes as 1 / sin(flex) with the distance, so a target passing the reach would snap the mid joint
+   straight in a frame or two, and the root with it); with ``max_flex_step_rad`` it changes at most that much per frame: near full extension the angle's derivative
    against the distance grows as 1 / sin(flex), so a target moving 4 cm per frame out to the chain's reach would
    otherwise swing the mid joint ~0.5 rad in one frame (the end then lags its target for a frame or two);
 2. the root's world rotation mapping (b + R_h(theta) c) onto the target direction with b on the pole side.
@@ -32,6 +34,12 @@ def _frame(e1: np.ndarray, e2_hint: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, np.cross(e1, e2)], -1)
 
 
+def soft_cap(x: np.ndarray, knee: float, cap: float) -> np.ndarray:
+    """``x`` below ``knee``; above it eased by tanh towards ``cap``, never reaching it (smooth, slope <= 1)."""
+    eased = knee + (cap - knee) * np.tanh((x - knee) / (cap - knee))
+    return np.where(x > knee, eased, x)
+
+
 def rate_limited(x: np.ndarray, max_step: float) -> np.ndarray:
     """(T,) ``x`` followed, changing at most ``max_step`` per frame."""
     out = x.astype(np.float64).tolist()
@@ -48,6 +56,7 @@ class TwoBoneChain:
     min_flex_rad: float = 0.12
     max_flex_rad: float = 2.4
     max_flex_step_rad: float | None = None  # per frame (None: unlimited, the end lands on every reachable target)
+    soft_reach: tuple[float, float] | None = None  # (knee, cap) shares of the full length (None: the exact distance)
 
     def solve(
         self, root_pos: np.ndarray, parent_rot: np.ndarray, target: np.ndarray, pole: np.ndarray
@@ -64,6 +73,9 @@ class TwoBoneChain:
         magnitude, phase = np.hypot(a_cos, a_sin), np.arctan2(a_sin, a_cos)
         reach = target - root_pos  # (T, 3)
         dist2 = (reach**2).sum(-1)
+        if self.soft_reach is not None:
+            full = np.sqrt(b @ b + c @ c + 2 * (b @ c_par) + 2 * magnitude)
+            dist2 = np.square(full * soft_cap(np.sqrt(dist2) / full, *self.soft_reach))
         k = (dist2 - b @ b - c @ c - 2 * (b @ c_par)) / (2 * magnitude)
         flex = np.arccos(np.clip(k, -1.0, 1.0))  # (T,) angle past straight
         flex = np.clip(flex, self.min_flex_rad, self.max_flex_rad)
