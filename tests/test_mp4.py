@@ -54,7 +54,12 @@ def test_background_writer_writes_the_same_file_and_raises_the_workers_error(tmp
         background.write(frame, samples)
     background.drain()
     assert background.frames_written == 30
-    assert background.close() == queued and direct.read_bytes() == queued.read_bytes()
+    assert background.close() == queued
+    # the same content (not the same bytes: under load libx264's threads may split the frames differently)
+    expected, got = decode(direct), decode(queued)
+    assert len(got["frames"]) == len(expected["frames"]) == 30 and got["audio"].shape == expected["audio"].shape
+    assert np.abs(np.stack(got["frames"]).astype(np.float64) - np.stack(expected["frames"])).mean() < 2.0
+    assert np.abs(got["audio"] - expected["audio"]).max() < 0.02
 
     failing = BackgroundMp4Writer(Mp4Writer(tmp_path / "bad.mp4", 64, 48))
     failing.write(np.zeros((10, 10, 3), np.uint8), audio[0])  # the worker raises; the caller sees it next
