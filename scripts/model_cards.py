@@ -1,6 +1,6 @@
 """Write the model cards of the shipped codecs and gesture LM from a training run's records.
 
-    python scripts/model_cards.py WORK SHIP [SYNTHETIC]   (scripts/train_default.sh calls it)
+    python scripts/model_cards.py WORK SHIP   (scripts/train_default.sh calls it)
 """
 import json
 import sys
@@ -9,12 +9,10 @@ from pathlib import Path
 import yaml
 
 W, S = Path(sys.argv[1]), Path(sys.argv[2])
-SYNTHETIC = Path(sys.argv[3]) if len(sys.argv) > 3 else W / "synthetic"
 CODEC = yaml.safe_load(Path("configs/codec/default_small.yaml").read_text())["train"]
 DECODER = yaml.safe_load(Path("configs/codec/default_small_finetune.yaml").read_text())["train"]
 LM = yaml.safe_load(Path("configs/lm/default_small.yaml").read_text())["train"]
 times = dict(l.split('\t') for l in (W / 'wall_times.tsv').read_text().splitlines())
-gen = json.loads((SYNTHETIC / 'generation.json').read_text())
 rows, tuned = [], []
 for r in ('upper', 'lower', 'face'):
     for stage, record in (('', W / f'codec_{r}.json'), (' (decoder fine-tuned)', W / f'decoder_{r}.json')):
@@ -34,22 +32,51 @@ def run_notes(card: str) -> str:
     return "\n" + notes.read_text() if notes.is_file() else ""
 
 
+def generation(mix: Path) -> dict:
+    """generation.json of the synthetic sessions that a mixed BEAT2-layout directory of train_default.sh links to."""
+    take = next((mix / 'smplxflame_25').glob('*_synth_*'))
+    return json.loads((take.resolve().parents[1] / 'generation.json').read_text())
+
+
 def data_line(mix: Path) -> str:
-    """What a mixed BEAT2-layout directory of train_default.sh holds, from its split file."""
+    """What a mixed BEAT2-layout directory of train_default.sh holds, from its split file and its sessions'
+    generation.json."""
+    gen = generation(mix)
     rows = [line.split(',') for line in (mix / 'train_test_split.csv').read_text().splitlines()[1:]]
     n_synthetic = sum('_synth_' in take for take, _ in rows)
     held = [take.split('_')[3] for take, split in rows if split == 'test']
     held_out = ', '.join(held) if len(held) <= 3 else f"{held[0]}, {held[1]}, …, {held[-1]}"
-    return (f"- {n_synthetic} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
+    return (f"{n_synthetic} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
             f"--seed {gen['seed']}`, default SynthConfig, sessions 1..{n_synthetic}; sessions {held_out} are the "
-            "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split).")
+            "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split). Made by the "
+            f"generator with fingerprint `{gen['generator_sha256'][:16]}` (`gesture.synth.build.generator_fingerprint`, "
+            "in the data's `generation.json`).")
+
+
+def codec_origin(region: str) -> Path:
+    """The run that trained a region's codec: this one, or the one train_default.sh copied it from
+    (CODECS_FROM, recorded in $WORK/codec_origin_<region>)."""
+    record = W / f'codec_origin_{region}'
+    return Path(record.read_text().strip()) if record.is_file() else W
+
+
+def codec_data_lines() -> str:
+    """Per group of regions trained in the same run, the data that trained them."""
+    origins = {r: codec_origin(r) for r in ('upper', 'lower', 'face')}
+    lines = []
+    for origin in dict.fromkeys(origins.values()):
+        regions = ' and '.join(r for r, o in origins.items() if o == origin)
+        where = "trained in this run" if origin == W else f"copied unchanged from `{origin}`, trained there"
+        lines.append(f"- {regions}: {where} on {data_line(origin / 'codec_data')}")
+    return "\n".join(lines)
 
 
 DECODER_STAGE = ("; stage `decoders`: `python -m gesture.train_codec --config configs/codec/default_small_finetune.yaml "
                  f"--region <region> --data $WORK/cache --finetune-decoder $WORK/codecs/<region> --out "
                  f"$WORK/decoders/<region> --steps <the region's steps>` for {' and '.join(tuned)}" if tuned else "")
 CODEC_TIMES = (f"codec stage (three regions in parallel on 2 cores) {int(times['codecs'])} s ("
-               + ", ".join(f"{r} {int(times[f'codec_{r}'])} s" for r in ('upper', 'lower', 'face'))
+               + ", ".join(f"{r} {int(times[f'codec_{r}'])} s" + ("" if codec_origin(r) == W else f" in `{codec_origin(r)}`")
+                           for r in ('upper', 'lower', 'face'))
                + f"), decoder fine-tuning {int(times.get('decoders', 0))} s")
 TERMS = f"""## Terms
 - The synthetic sessions are made by this project's generator (`gesture/synth`, MIT like the rest of the code;
@@ -64,10 +91,8 @@ frozen (the codes, and so the LM's tokens, do not change): `configs/codec/defaul
 {DECODER['lr']:g}, batch {DECODER['batch_size']}, the steps in the table below (`decoder_loss_curve.png`), with the
 reference's losses but the FK joint-position MSE weighted {DECODER['joint_position_weight']:g} (the reference's 10;
 `gesture.codec.losses`), so that errors near the root, which move every joint after them, weigh more.""" if tuned else "No decoder fine-tuning (`DECODER_REGIONS` is empty for this ship).")
-synth_note = (f" Made by the generator with fingerprint `{gen['generator_sha256'][:16]}`"
-              " (`gesture.synth.build.generator_fingerprint`, in the data's `generation.json`).")
-codec_data = data_line(W / 'codec_data') + synth_note + " Cut into 10 s chunks by `python -m gesture.data.build`."
-lm_data = data_line(W / 'data') + synth_note
+codec_data = codec_data_lines() + "\nCut into 10 s chunks by `python -m gesture.data.build`."
+lm_data = "- " + data_line(W / 'data')
 codec = f"""# The default gesture codecs (upper+hands, lower, face)
 
 Three causal RVQ-VAE codecs (gesture.codec, 2 frames per 80 ms step, 256 codes of dimension 32; n_q 8/8/4),
