@@ -33,7 +33,7 @@ from gesture.synth.face import JAW_OPEN_RAD, blink_track, expressions_from_activ
 from gesture.synth.gestures import ArmTracks, plan_arms
 from gesture.synth.hands import blend_hands
 from gesture.synth.ik import TwoBoneChain
-from gesture.synth.posture import Posture, plan_posture
+from gesture.synth.posture import Posture, highest_pelvis, plan_posture
 from gesture.synth.reflex import PostureReflexes
 from gesture.synth.tracks import KeyTrack, add_bump, lowpass_noise, smooth_noise
 
@@ -370,6 +370,10 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
         eased = ROOT_MICRO_MAX_RAD * np.tanh(angle / ROOT_MICRO_MAX_RAD)
         posture.root_offset_aa = posture.root_offset_aa + root * (eased / angle)
     solver = BodySolver(skeleton, fps)
+    # the turned pelvis moves the hips: lowered where a leg would otherwise lock straight (the ankle then flips)
+    root_rot = _aa(posture.root_offset_aa) @ _aa(solver.base[0])
+    posture.trans[:, 1] = np.minimum(posture.trans[:, 1],
+                                     highest_pelvis(skeleton, posture.trans[:, [0, 2]], posture.ankles, root_rot))
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
     gesture_local = local.copy()  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
     for j, offset in offsets.items():

@@ -47,6 +47,10 @@ KNEE_DIP_M = 0.035  # the pelvis lowers this much with the weight fully on one f
 # over the feet (low-passed noise) gives its motion.
 PELVIS_SWAY_M = (0.045, 0.045)  # sideways, fore-aft std while speaking (0.6 + 0.4 x energy of it)
 PELVIS_SWAY_HZ = 0.4
+# The sway's filter order: with the micro-motion's 2nd order its acceleration is flat above the cutoff, and the pelvis
+# accelerated 2.5-3x the real speaker's (median; his 0.22 / 0.25 m/s^2 sideways / fore-aft) on his clip's speech; with
+# the 4th, 0.19 / 0.14 (p90 0.69 / 0.68, his 0.67 / 0.74), and his head's 2.2x -> 1.5-1.6x.
+PELVIS_SWAY_ORDER = 4
 LEG_REACH_SHARE = 0.97  # hip to ankle at most this share of the leg's length: the knees never lock
 
 
@@ -111,17 +115,19 @@ def plan_steps(rng: np.random.Generator, n_frames: int, fps: float, energy: np.n
     return xz, lift, planted
 
 
-def _pelvis_height(skeleton: Skeleton, trans_xz: np.ndarray, ankles: np.ndarray, nominal: np.ndarray) -> np.ndarray:
-    """(T,) the pelvis translation height: ``nominal``, lowered where a hip would be too far from its ankle."""
+def highest_pelvis(skeleton: Skeleton, trans_xz: np.ndarray, ankles: np.ndarray,
+                   root_rot: np.ndarray | None = None) -> np.ndarray:
+    """(T,) the highest pelvis translation at which each hip is within LEG_REACH_SHARE of its leg's length from its
+    ankle; ``root_rot`` (T, 3, 3): the pelvis's rotation, which moves the hips (None: upright)."""
     rest = skeleton.rest_joints.astype(np.float64)
-    height = nominal.copy()
+    highest = np.full(len(trans_xz), np.inf)
     for s, (hip, knee, ankle) in enumerate(((1, 4, 7), (2, 5, 8))):
         reach = LEG_REACH_SHARE * (np.linalg.norm(rest[knee] - rest[hip]) + np.linalg.norm(rest[ankle] - rest[knee]))
-        hip_xz = trans_xz + rest[hip, [0, 2]]
-        flat2 = ((ankles[:, s, [0, 2]] - hip_xz) ** 2).sum(-1)
-        highest = ankles[:, s, 1] + np.sqrt(np.maximum(reach**2 - flat2, 0.0)) - rest[hip, 1]
-        height = np.minimum(height, highest)
-    return height
+        offset = rest[hip] - rest[0] if root_rot is None else root_rot @ (rest[hip] - rest[0])  # (3,) or (T, 3)
+        hip_rest = rest[0] + offset  # the hip for a zero translation
+        flat2 = ((ankles[:, s, [0, 2]] - trans_xz - hip_rest[..., [0, 2]]) ** 2).sum(-1)
+        highest = np.minimum(highest, ankles[:, s, 1] + np.sqrt(np.maximum(reach**2 - flat2, 0.0)) - hip_rest[..., 1])
+    return highest
 
 
 def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np.ndarray,
@@ -144,11 +150,11 @@ def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np
     sway = smooth_noise(rng, n_frames, fps, 0.15, 5) * (0.6 + 0.4 * energy[:, None])  # (T, 5)
     mid = xz.mean(1)  # (T, 2) the feet's centre
     to_left = (xz[:, 0] - xz[:, 1]) / 2  # (T, 2) from the centre to the left foot
-    pelvis_sway = lowpass_noise(rng, n_frames, fps, PELVIS_SWAY_HZ, 2) * PELVIS_SWAY_M * (0.6 + 0.4 * energy[:, None])
+    pelvis_sway = lowpass_noise(rng, n_frames, fps, PELVIS_SWAY_HZ, 2, PELVIS_SWAY_ORDER) * PELVIS_SWAY_M * (0.6 + 0.4 * energy[:, None])
     trans_xz = mid + WEIGHT_SHIFT_SHARE * weight[:, None] * to_left + sway[:, [0, 2]] * (0.008, 0.01) + pelvis_sway
     trans_xz[:, 1] -= ankle_z  # the feet stand ankle_z from the pelvis (z)
     nominal = TRANS_Y_M - KNEE_DIP_M * np.abs(weight) + 0.002 * sway[:, 1]
-    trans = np.stack([trans_xz[:, 0], _pelvis_height(skeleton, trans_xz, ankles, nominal), trans_xz[:, 1]], -1)
+    trans = np.stack([trans_xz[:, 0], np.minimum(nominal, highest_pelvis(skeleton, trans_xz, ankles)), trans_xz[:, 1]], -1)
     root = np.stack([0.012 * sway[:, 3], 0.035 * sway[:, 4], 0.035 * weight], -1)  # pitch, yaw, roll
     breath_hz = rng.uniform(0.2, 0.3)
     breath = np.sin(2 * np.pi * breath_hz * times + rng.uniform(0, 2 * np.pi))

@@ -83,10 +83,10 @@ LOWPASS_ORDER = 2  # real joint rotations fall off as a 2nd-order low-pass above
 LOWPASS_WARMUP_TAUS = 12  # white noise run through the filter first, in time constants: the output starts stationary
 
 
-def lowpass_sos(cutoff_hz: float, fps: float) -> np.ndarray:
-    """The micro-motion noise filter: a Butterworth low-pass of LOWPASS_ORDER at ``cutoff_hz``, as second-order
+def lowpass_sos(cutoff_hz: float, fps: float, order: int = LOWPASS_ORDER) -> np.ndarray:
+    """The micro-motion noise filter: a Butterworth low-pass of ``order`` at ``cutoff_hz``, as second-order
     sections."""
-    return butter(LOWPASS_ORDER, cutoff_hz, fs=fps, output="sos")
+    return butter(order, cutoff_hz, fs=fps, output="sos")
 
 
 def lowpass_gain(sos: np.ndarray, fps: float, cutoff_hz: float) -> float:
@@ -100,9 +100,10 @@ def lowpass_warmup_frames(cutoff_hz: float, fps: float) -> int:
     return int(np.ceil(LOWPASS_WARMUP_TAUS * fps / (2 * np.pi * cutoff_hz)))
 
 
-def lowpass_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1) -> np.ndarray:
+def lowpass_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1,
+                  order: int = LOWPASS_ORDER) -> np.ndarray:
     """(n_frames, dim) white noise through ``lowpass_sos``, unit standard deviation per column in expectation."""
-    sos, warmup = lowpass_sos(cutoff_hz, fps), lowpass_warmup_frames(cutoff_hz, fps)
+    sos, warmup = lowpass_sos(cutoff_hz, fps, order), lowpass_warmup_frames(cutoff_hz, fps)
     out = sosfilt(sos, rng.standard_normal((warmup + n_frames, dim)), axis=0)[warmup:]
     return out / lowpass_gain(sos, fps, cutoff_hz)
 
