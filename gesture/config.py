@@ -76,6 +76,20 @@ class FootLockConfig:
 
 
 ARM_JOINTS = (18, 19, 20, 21)  # elbows and wrists
+TORSO_AND_LEG_JOINTS = tuple(range(18))  # pelvis, legs, spine, neck, collars, head, shoulders
+
+
+@dataclass(frozen=True)
+class AlternationFilterConfig:
+    """The decoded motion's frame-to-frame alternation removed (gesture.alternation_filter; not in the reference,
+    off by default)."""
+
+    enabled: bool = False
+    joints: tuple[int, ...] = TORSO_AND_LEG_JOINTS  # and the translation; the elbows and wrists: the stabilizer
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise ConfigError("gesture.alternation_filter.joints: must name at least one joint")
 
 
 @dataclass(frozen=True)
@@ -133,6 +147,7 @@ class GestureConfig:
     face: FaceLayerConfig = field(default_factory=FaceLayerConfig)
     foot_lock: FootLockConfig = field(default_factory=FootLockConfig)
     stabilizer: StabilizerConfig = field(default_factory=StabilizerConfig)
+    alternation_filter: AlternationFilterConfig = field(default_factory=AlternationFilterConfig)
 
     def __post_init__(self) -> None:
         if self.temperature <= 0:

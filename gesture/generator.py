@@ -9,7 +9,8 @@ Per step (MIBURI-FACTS sections 3 and 5): the temporal transformer gives level 0
 guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level; an optional
 hold bias (not in the reference) raises the logit of the previous step's token at chosen levels. The optional
 idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history). Then the
-optional runtime layers, none of them in the reference: the foot lock (`gesture.foot_lock`) holds planted feet where
+optional runtime layers, none of them in the reference: the alternation filter (`gesture.alternation_filter`) removes
+the decoded torso's and legs' frame-to-frame alternation, the foot lock (`gesture.foot_lock`) holds planted feet where
 the decoded contacts planted them, the stabilizer (`gesture.stabilizer`) smooths the decoded arms' slow drift so
 that they hold still between strokes, the micro-motion layer (`gesture.micro_motion`) then adds the micro-motion
 the codecs' training data (its gesture layer) leaves out, unsmoothed as in the data, and the face layer
@@ -41,6 +42,7 @@ from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
 from gesture.micro_motion import MicroMotion
 from gesture.nn.streaming import StreamingModule
+from gesture.alternation_filter import AlternationFilter
 from gesture.stabilizer import ArmStabilizer
 
 
@@ -67,6 +69,7 @@ class GestureGenerator:
                  idle_gate: Optional[IdleGate] = None,
                  micro_motion: Optional[MicroMotion] = None, face_layer: Optional[FaceLayer] = None,
                  foot_lock: Optional[FootLock] = None, stabilizer: Optional[ArmStabilizer] = None,
+                 alternation_filter: Optional[AlternationFilter] = None,
                  initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
                  engine: Optional[StreamingModule] = None) -> None:
         self.sizes = lm.sizes
@@ -90,6 +93,7 @@ class GestureGenerator:
         self.face_layer = face_layer
         self.foot_lock = foot_lock
         self.stabilizer = stabilizer
+        self.alternation_filter = alternation_filter
         self.initial_translation = np.asarray(initial_translation, np.float64)
         self.seed = seed
         self.generator = torch.Generator()
@@ -100,7 +104,8 @@ class GestureGenerator:
         self.engine.reset_streaming()
         for decoder in self.decoders.values():
             decoder.reset()
-        for layer in (self.idle_gate, self.foot_lock, self.stabilizer, self.micro_motion, self.face_layer):
+        for layer in (self.idle_gate, self.alternation_filter, self.foot_lock, self.stabilizer, self.micro_motion,
+                      self.face_layer):
             if layer is not None:
                 layer.reset()
         self.generator.manual_seed(self.seed)
@@ -133,6 +138,8 @@ class GestureGenerator:
             idle = self.idle_gate.silent
             decoded = self.idle_gate.apply(decoded)
         poses, trans, expressions, contacts = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
+        if self.alternation_filter is not None:
+            poses, trans = self.alternation_filter.step(poses, trans)
         if self.foot_lock is not None:
             poses = self.foot_lock.step(poses, trans, contacts)
         if self.stabilizer is not None:

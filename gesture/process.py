@@ -25,7 +25,8 @@ from core.messages import DialogueStep, GestureStep, Message
 from core.component import RunContext
 from core.timing import MOTION_FPS, STEP_SAMPLES
 from gesture.body.skeleton import Skeleton
-from gesture.config import FaceLayerConfig, FootLockConfig, GestureConfig, MicroMotionConfig, StabilizerConfig
+from gesture.config import (AlternationFilterConfig, FaceLayerConfig, FootLockConfig, GestureConfig, MicroMotionConfig,
+                            StabilizerConfig)
 from gesture.face_layer import FaceLayer
 from gesture.foot_lock import FootLock
 from gesture.generator import GestureGenerator
@@ -34,6 +35,7 @@ from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
 from gesture.micro_motion import MicroMotion, calibrated_micro_motion
 from gesture.nn.weights import UnsupportedFormError, require_fast_form
+from gesture.alternation_filter import AlternationFilter
 from gesture.stabilizer import ArmStabilizer
 
 log = logging.getLogger(__name__)
@@ -125,6 +127,7 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
                             micro_motion=build_micro_motion(cfg.micro_motion, seed),
                             face_layer=build_face_layer(cfg.face, seed), foot_lock=build_foot_lock(cfg.foot_lock),
                             stabilizer=build_stabilizer(cfg.stabilizer),
+                            alternation_filter=build_alternation_filter(cfg.alternation_filter),
                             initial_translation=cfg.initial_translation)
 
 
@@ -160,6 +163,16 @@ def build_stabilizer(cfg: StabilizerConfig) -> Optional[ArmStabilizer]:
         return ArmStabilizer(cfg.joints, MOTION_FPS, cfg.min_cutoff_hz, cfg.speed_gain_hz, cfg.speed_cutoff_hz)
     except ValueError as error:
         raise ConfigError(f"gesture.stabilizer: {error}") from None
+
+
+def build_alternation_filter(cfg: AlternationFilterConfig) -> Optional[AlternationFilter]:
+    """The `gesture.alternation_filter` on the decoded motion, or None when it is off."""
+    if not cfg.enabled:
+        return None
+    try:
+        return AlternationFilter(cfg.joints)
+    except ValueError as error:
+        raise ConfigError(f"gesture.alternation_filter: {error}") from None
 
 
 def warm_up(generator: GestureGenerator, steps: int) -> None:
