@@ -79,6 +79,12 @@ reuse_codec() {  # reuse_codec REGION: an earlier run's codec, when its region's
   cp -r "$CODECS_FROM/codecs/$1" "$WORK/codecs/"
   cp "$CODECS_FROM/codec_$1.json" "$WORK/"
   grep "^codec_$1	" "$CODECS_FROM/wall_times.tsv" >> "$TIMES"
+  # the run that trained it, for the model card: the earlier run's own record when it had copied it too
+  if [ -f "$CODECS_FROM/codec_origin_$1" ]; then
+    cp "$CODECS_FROM/codec_origin_$1" "$WORK/"
+  else
+    echo "$CODECS_FROM" > "$WORK/codec_origin_$1"
+  fi
 }
 
 train_codecs() {  # the regions of $CODEC_REGIONS in parallel, each niced and single-threaded
@@ -90,6 +96,7 @@ train_codecs() {  # the regions of $CODEC_REGIONS in parallel, each niced and si
       continue
     fi
     steps=${region_steps[$region]}
+    rm -f "$WORK/codec_origin_$region"  # trained here
     timed "codec_$region" "${NICE[@]}" "$PY" -m gesture.train_codec --config "$CODEC_CONFIG" --region "$region" \
       --data "$WORK/cache" --out "$WORK/codecs/$region" --steps "$steps" > "$WORK/codec_$region.json" \
       2> "$WORK/codec_$region.log" &
@@ -155,6 +162,6 @@ timed lm "${NICE[@]}" "$PY" -m gesture.train_lm --config "$LM_CONFIG" --data "$W
   --codecs "$WORK/codecs" --out "$WORK/lm" --no-progress ${LM_EPOCHS:+--epochs "$LM_EPOCHS"}
 wait "$decoders_pid"
 timed ship ship
-"$PY" scripts/model_cards.py "$WORK" "$SHIP" "$SYNTHETIC"
+"$PY" scripts/model_cards.py "$WORK" "$SHIP"
 du -sh "$SHIP"/* >&2
 cat "$TIMES"

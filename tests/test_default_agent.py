@@ -202,3 +202,11 @@ def test_training_chain_end_to_end_tiny(tmp_path):
     assert json.loads((ship / "gesture_lm" / "speakers.json").read_text())
     for card in ("codecs/README.md", "gesture_lm/README.md"):  # the cards name the generator that made the data
         assert generator_fingerprint()[:16] in (ship / card).read_text()
+    # a second run trains only the lower codec and copies the others: its card says where each was trained
+    again = {**env, "CODEC_REGIONS": "lower", "CODECS_FROM": str(tmp_path / "work"), "DECODER_REGIONS": "",
+             "WORK": str(tmp_path / "work2"), "SHIP": str(tmp_path / "ship2")}
+    subprocess.run(["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=again, check=True,
+                   capture_output=True, text=True)
+    card = (tmp_path / "ship2" / "codecs" / "README.md").read_text()
+    assert f"- upper and face: copied unchanged from `{tmp_path / 'work'}`" in card
+    assert "- lower: trained in this run" in card
