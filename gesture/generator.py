@@ -30,6 +30,7 @@ import torch
 
 from core.body import REGIONS
 from core.timing import FRAMES_PER_STEP, MOTION_FPS
+from gesture.alternation_filter import AlternationFilter
 from gesture.body.regions import LOWER_CONTACT_SLICE, LOWER_VELOCITY_SLICE, features_to_motion
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
@@ -42,7 +43,6 @@ from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
 from gesture.micro_motion import MicroMotion
 from gesture.nn.streaming import StreamingModule
-from gesture.alternation_filter import AlternationFilter
 from gesture.stabilizer import ArmStabilizer
 
 

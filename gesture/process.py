@@ -24,6 +24,7 @@ from core.config import ConfigError
 from core.messages import DialogueStep, GestureStep, Message
 from core.component import RunContext
 from core.timing import MOTION_FPS, STEP_SAMPLES
+from gesture.alternation_filter import AlternationFilter
 from gesture.body.skeleton import Skeleton
 from gesture.config import (AlternationFilterConfig, FaceLayerConfig, FootLockConfig, GestureConfig, MicroMotionConfig,
                             StabilizerConfig)
@@ -35,7 +36,6 @@ from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
 from gesture.micro_motion import MicroMotion, calibrated_micro_motion
 from gesture.nn.weights import UnsupportedFormError, require_fast_form
-from gesture.alternation_filter import AlternationFilter
 from gesture.stabilizer import ArmStabilizer
 
 log = logging.getLogger(__name__)
