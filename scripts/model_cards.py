@@ -49,8 +49,8 @@ def data_line(mix: Path) -> str:
     return (f"{n_synthetic} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
             f"--seed {gen['seed']}`, default SynthConfig, sessions 1..{n_synthetic}; sessions {held_out} are the "
             "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split). Made by the "
-            f"generator with fingerprint `{gen['generator_sha256'][:16]}` (`gesture.synth.build.generator_fingerprint`, "
-            "in the data's `generation.json`).")
+            f"generator with fingerprint `{gen['generator_sha256'][:16]}` "
+            "(`gesture.synth.build.generator_fingerprint`, in the data's `generation.json`).")
 
 
 def codec_origin(region: str) -> Path:
@@ -74,9 +74,14 @@ def codec_data_lines() -> str:
 DECODER_STAGE = ("; stage `decoders`: `python -m gesture.train_codec --config configs/codec/default_small_finetune.yaml "
                  f"--region <region> --data $WORK/cache --finetune-decoder $WORK/codecs/<region> --out "
                  f"$WORK/decoders/<region> --steps <the region's steps>` for {' and '.join(tuned)}" if tuned else "")
+def codec_time(region: str) -> str:
+    """A region's codec training time, and where it was measured when the codec was copied."""
+    where = "" if codec_origin(region) == W else f" in `{codec_origin(region)}`"
+    return f"{region} {int(times[f'codec_{region}'])} s{where}"
+
+
 CODEC_TIMES = (f"codec stage (three regions in parallel on 2 cores) {int(times['codecs'])} s ("
-               + ", ".join(f"{r} {int(times[f'codec_{r}'])} s" + ("" if codec_origin(r) == W else f" in `{codec_origin(r)}`")
-                           for r in ('upper', 'lower', 'face'))
+               + ", ".join(codec_time(r) for r in ('upper', 'lower', 'face'))
                + f"), decoder fine-tuning {int(times.get('decoders', 0))} s")
 TERMS = f"""## Terms
 - The synthetic sessions are made by this project's generator (`gesture/synth`, MIT like the rest of the code;

@@ -72,7 +72,7 @@ def test_generator_applies_it_to_the_decoded_motion():
 def test_bad_options_and_inputs_give_clear_errors():
     with pytest.raises(ConfigError, match="gesture.alternation_filter.joints: must name at least one joint"):
         AlternationFilterConfig(joints=())
-    with pytest.raises(ConfigError, match=r"gesture.alternation_filter: joints: need one or more of 0..54, got \[3, 55\]"):
+    with pytest.raises(ConfigError, match=r"alternation_filter: joints: need one or more of 0..54, got \[3, 55\]"):
         build_alternation_filter(AlternationFilterConfig(enabled=True, joints=(3, 55)))
     assert build_alternation_filter(AlternationFilterConfig()) is None
     with pytest.raises(ValueError, match=r"poses: expected \(frames, 55, 3\)"):

@@ -9,8 +9,8 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 way, so the report is seen to discriminate:
 
 - ``generated_codecs_only``: the same agent without its runtime layers (``gesture.alternation_filter``,
-  ``gesture.micro_motion``, ``gesture.face``, ``gesture.foot_lock`` and ``gesture.stabilizer`` off): what its LM and codecs alone carry; not measured with
-  ``--motion``;
+  ``gesture.micro_motion``, ``gesture.face``, ``gesture.foot_lock`` and ``gesture.stabilizer`` off): what its LM and
+  codecs alone carry; not measured with ``--motion``;
 - ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
 - ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``, else the config's
@@ -78,7 +78,8 @@ JOINT_GROUPS = {
     "neck_head": (12, 15),
     "spine": (3, 6, 9),
 }
-RUNTIME_LAYERS = ("alternation_filter", "micro_motion", "face", "foot_lock", "stabilizer")  # config sections of the layers after decoding
+# the config sections of the layers after decoding
+RUNTIME_LAYERS = ("alternation_filter", "micro_motion", "face", "foot_lock", "stabilizer")
 GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four
 STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)
