@@ -40,6 +40,23 @@ LM_EPOCHS=${LM_EPOCHS:-300}  # the shipped LM; trained on to the config's 450 (C
 NICE=(nice -n "${NICE_LEVEL:-5}")
 export OPENBLAS_NUM_THREADS=1
 
+check_reuse() {  # before any stage: every region left out of CODEC_REGIONS can be copied as it shipped
+  local region
+  for region in upper lower face; do
+    [[ " $CODEC_REGIONS " == *" $region "* ]] && continue
+    if [ -z "$CODECS_FROM" ] || [ ! -f "$CODECS_FROM/codecs/$region/model.safetensors" ]; then
+      echo "CODEC_REGIONS=\"$CODEC_REGIONS\" leaves out $region: set CODECS_FROM to an earlier run's WORK with" \
+        "codecs/$region (CODECS_FROM=\"$CODECS_FROM\")" >&2
+      return 1
+    fi
+    if [ -d "$CODECS_FROM/decoders/$region" ] && [[ " $DECODER_REGIONS " != *" $region "* ]]; then
+      echo "$CODECS_FROM fine-tuned its $region decoder, which is not copied: add $region to DECODER_REGIONS" >&2
+      return 1
+    fi
+  done
+}
+
+check_reuse
 mkdir -p "$WORK"
 TIMES="$WORK/wall_times.tsv"
 : > "$TIMES"
@@ -70,10 +87,6 @@ mix_data() {  # mix_data DIR N: a BEAT2-layout directory of the first N syntheti
 }
 
 reuse_codec() {  # reuse_codec REGION: an earlier run's codec, when its region's data did not change
-  if [ -z "$CODECS_FROM" ]; then
-    echo "CODEC_REGIONS=\"$CODEC_REGIONS\" leaves out $1: set CODECS_FROM to the run to copy it from" >&2
-    return 1
-  fi
   mkdir -p "$WORK/codecs"
   rm -rf "$WORK/codecs/$1"
   cp -r "$CODECS_FROM/codecs/$1" "$WORK/codecs/"

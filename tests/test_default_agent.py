@@ -203,10 +203,31 @@ def test_training_chain_end_to_end_tiny(tmp_path):
     for card in ("codecs/README.md", "gesture_lm/README.md"):  # the cards name the generator that made the data
         assert generator_fingerprint()[:16] in (ship / card).read_text()
     # a second run trains only the lower codec and copies the others: its card says where each was trained
-    again = {**env, "CODEC_REGIONS": "lower", "CODECS_FROM": str(tmp_path / "work"), "DECODER_REGIONS": "",
+    again = {**env, "CODEC_REGIONS": "lower", "CODECS_FROM": str(tmp_path / "work"), "DECODER_REGIONS": "upper",
              "WORK": str(tmp_path / "work2"), "SHIP": str(tmp_path / "ship2")}
     subprocess.run(["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=again, check=True,
                    capture_output=True, text=True)
     card = (tmp_path / "ship2" / "codecs" / "README.md").read_text()
     assert f"- upper and face: copied unchanged from `{tmp_path / 'work'}`" in card
     assert "- lower: trained in this run" in card
+
+
+def _train_default_fails(tmp_path, **options) -> str:
+    """Run scripts/train_default.sh with these options, expecting it to stop before any stage: its error text."""
+    env = {**os.environ, "WORK": str(tmp_path / "work"), "SYNTHETIC": str(tmp_path / "synthetic"), **options}
+    run = subprocess.run(["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=env,
+                         capture_output=True, text=True)
+    assert run.returncode != 0
+    assert not (tmp_path / "work").exists() and not (tmp_path / "synthetic").exists()
+    return run.stderr
+
+
+def test_training_chain_refuses_a_region_it_cannot_copy_before_any_stage(tmp_path):
+    assert "leaves out upper: set CODECS_FROM" in _train_default_fails(tmp_path, CODEC_REGIONS="lower face")
+    earlier = tmp_path / "earlier"
+    for region in ("upper", "face"):
+        (earlier / "codecs" / region).mkdir(parents=True)
+        (earlier / "codecs" / region / "model.safetensors").write_bytes(b"")
+    (earlier / "decoders" / "upper").mkdir(parents=True)  # that run shipped a fine-tuned upper decoder
+    error = _train_default_fails(tmp_path, CODEC_REGIONS="lower", CODECS_FROM=str(earlier))
+    assert "fine-tuned its upper decoder, which is not copied: add upper to DECODER_REGIONS" in error
