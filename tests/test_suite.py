@@ -96,7 +96,9 @@ def test_run_generator_collects_steps_and_is_reproducible():
     audio = np.random.default_rng(0).integers(0, 256, (8, 12))
     a, b = suite.run_generator(gen, text, audio), suite.run_generator(gen, text, audio)
     assert a.poses.shape == (24, 55, 3) and a.va_prob.shape == (12,) and a.step_ms.shape == (12,)
+    assert a.tokens.shape == (12, gen.sizes.n_levels)
     np.testing.assert_array_equal(a.poses, b.poses)
+    np.testing.assert_array_equal(a.tokens, b.tokens)
     assert a.clip().fps == 25
 
 

@@ -87,6 +87,7 @@ class Generated:
     expressions: np.ndarray  # (2T, 100)
     va_prob: np.ndarray  # (T,)
     step_ms: np.ndarray  # (T,) wall time of each generator step
+    tokens: np.ndarray  # (T, L) the sampled gesture tokens of each step, every level
 
     def clip(self) -> M.MotionClip:
         return M.MotionClip(self.poses, self.trans, self.expressions, MOTION_FPS)
@@ -115,7 +116,7 @@ def run_generator(generator: GestureGenerator, text: np.ndarray, audio: np.ndarr
     """Drive the generator with T steps of conditioning: text (T,), audio codes (Q, T), agent audio (T*1920,)."""
     generator.reset()
     n = len(text)
-    poses, trans, expressions, va, step_ms = [], [], [], np.full(n, np.nan), np.zeros(n)
+    poses, trans, expressions, tokens, va, step_ms = [], [], [], [], np.full(n, np.nan), np.zeros(n)
     for t in range(n):
         pcm = None if pcm_24k is None else _step_audio(pcm_24k, t)
         start = time.perf_counter()
@@ -124,8 +125,10 @@ def run_generator(generator: GestureGenerator, text: np.ndarray, audio: np.ndarr
         poses.append(out.poses)
         trans.append(out.trans)
         expressions.append(out.expressions)
+        tokens.append(out.tokens)
         va[t] = out.va_prob
-    return Generated(np.concatenate(poses), np.concatenate(trans), np.concatenate(expressions), va, step_ms)
+    return Generated(np.concatenate(poses), np.concatenate(trans), np.concatenate(expressions), va, step_ms,
+                     np.stack(tokens))
 
 
 def _step_audio(pcm: np.ndarray, step: int) -> np.ndarray:
@@ -188,19 +191,25 @@ GENERATOR_STAMP = "generator.sha256"  # in the held-out directory: the generator
 
 
 def ensure_heldout(root: Path, n_sessions: int) -> None:
-    """Generate held-out sessions 10, 20, ... of the training data's seed into `root` unless it already holds
-    `n_sessions` test takes made by the current generator (``GENERATOR_STAMP``)."""
+    """Generate held-out sessions 10, 20, ... of the training data's seed into `root` (see ensure_sessions)."""
+    from gesture.synth.build import held_out_period
     from gesture.synth.config import SynthConfig
-    from gesture.synth.build import SESSION_MINUTES, generate_sessions, generator_fingerprint, held_out_period
+
+    period = held_out_period(SynthConfig())
+    ensure_sessions(root, HELDOUT_DATA_SEED, range(period, period * (n_sessions + 1), period))
+
+
+def ensure_sessions(root: Path, seed: int, numbers: range) -> None:
+    """Generate synthetic sessions `numbers` of `seed` into `root`, all in its test split, unless it already holds
+    as many test takes made by the current generator (``GENERATOR_STAMP``)."""
+    from gesture.synth.config import SynthConfig
+    from gesture.synth.build import SESSION_MINUTES, generate_sessions, generator_fingerprint
 
     stamp, fingerprint = root / GENERATOR_STAMP, generator_fingerprint()
     takes = _test_takes(root) if root.is_dir() else []
-    if stamp.is_file() and stamp.read_text().strip() == fingerprint and len(takes) >= n_sessions:
+    if stamp.is_file() and stamp.read_text().strip() == fingerprint and len(takes) >= len(numbers):
         return
-    cfg = SynthConfig()
-    period = held_out_period(cfg)
-    numbers = range(period, period * (n_sessions + 1), period)
-    ids = generate_sessions(cfg, root, HELDOUT_DATA_SEED, numbers, SESSION_MINUTES, jobs=2)
+    ids = generate_sessions(SynthConfig(), root, seed, numbers, SESSION_MINUTES, jobs=2)
     (root / "train_test_split.csv").write_text("id,type\n" + "".join(f"{i},test\n" for i in ids))
     stamp.write_text(fingerprint + "\n")
 
