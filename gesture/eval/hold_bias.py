@@ -47,6 +47,8 @@ def closest_bias(rates_by_bias: dict[float, np.ndarray], target: np.ndarray, lev
 
 def measure(config: Path, biases: Sequence[float], root: Path, n_sessions: int, seconds: float, seed: int,
             levels: Optional[Sequence[int]] = None, progress=print) -> dict:
+    """The report of the module docstring: the tokens' repeat rates per level, the LM's per bias (applied at
+    `levels`, default the config's hold levels) and the closest bias."""
     from gesture.process import build_generator
 
     torch.set_num_threads(1)
@@ -63,7 +65,8 @@ def measure(config: Path, biases: Sequence[float], root: Path, n_sessions: int, 
         raise ValueError(f"levels: must be token levels in [0, {len(data) - 1}], got {levels}")
     by_bias = {}
     for bias in biases:
-        generator = build_generator(dataclasses.replace(gesture_cfg, hold_bias=float(bias)), seed)
+        cfg = dataclasses.replace(gesture_cfg, hold_bias=float(bias), hold_levels=tuple(levels))
+        generator = build_generator(cfg, seed)
         by_bias[float(bias)] = sum(w * repeat_rates(run_generator(generator, s.tokens.text_tokens,
                                                                   s.tokens.audio_codes, s.pcm_24k).tokens)
                                    for w, s in zip(weights, sessions))
