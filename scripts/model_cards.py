@@ -83,6 +83,8 @@ def codec_time(region: str) -> str:
 CODEC_TIMES = (f"codec stage (three regions in parallel on 2 cores) {int(times['codecs'])} s ("
                + ", ".join(codec_time(r) for r in ('upper', 'lower', 'face'))
                + f"), decoder fine-tuning {int(times.get('decoders', 0))} s")
+SYNTHETIC_TIME = (f"synthetic data {int(times['synthetic'])} s" if 'synthetic' in times else
+                  "synthetic data made by an earlier run (SYNTHETIC), not timed here")
 TERMS = f"""## Terms
 - The synthetic sessions are made by this project's generator (`gesture/synth`, MIT like the rest of the code;
   its voices are espeak-ng's). The generator's calibration (`gesture/synth/calibration.json`: rest posture,
@@ -142,7 +144,7 @@ quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<re
 configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>
 --steps <the region's steps>`, the three regions in parallel, `nice -n 5`, one thread each{DECODER_STAGE}).
 
-Wall time: {CODEC_TIMES}; synthetic data {int(times.get('synthetic', 0))} s, chunk cache {int(times['chunk_cache'])} s.
+Wall time: {CODEC_TIMES}; {SYNTHETIC_TIME}, chunk cache {int(times['chunk_cache'])} s.
 """
 (S / 'codecs' / 'README.md').write_text(codec + run_notes('codecs'))
 meta = json.loads((S / 'gesture_lm' / 'lm.json').read_text())
