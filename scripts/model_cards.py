@@ -80,7 +80,7 @@ def codec_time(region: str) -> str:
     return f"{region} {int(times[f'codec_{region}'])} s{where}"
 
 
-CODEC_TIMES = (f"codec stage (three regions in parallel on 2 cores) {int(times['codecs'])} s ("
+CODEC_TIMES = (f"codec stage (the regions trained here, in parallel on 2 cores) {int(times['codecs'])} s ("
                + ", ".join(codec_time(r) for r in ('upper', 'lower', 'face'))
                + f"), decoder fine-tuning {int(times.get('decoders', 0))} s")
 SYNTHETIC_TIME = (f"synthetic data {int(times['synthetic'])} s" if 'synthetic' in times else
@@ -142,7 +142,7 @@ quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<re
 ## Reproduce
 `bash scripts/train_default.sh` (stage `codecs`: `python -m gesture.train_codec --config
 configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>
---steps <the region's steps>`, the three regions in parallel, `nice -n 5`, one thread each{DECODER_STAGE}).
+--steps <the region's steps>`, the regions of `CODEC_REGIONS` in parallel, `nice -n 5`, one thread each{DECODER_STAGE}).
 
 Wall time: {CODEC_TIMES}; {SYNTHETIC_TIME}, chunk cache {int(times['chunk_cache'])} s.
 """
