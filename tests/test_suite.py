@@ -67,11 +67,13 @@ def test_heldout_sessions_are_the_training_datas_own_test_sessions_in_session_or
     suite.ensure_heldout(tmp_path / "heldout", 2)  # already there: kept
     assert takes[0].motion_path.stat().st_mtime_ns == first_write
     stamp = tmp_path / "heldout" / suite.GENERATOR_STAMP
-    assert stamp.read_text().strip() == generator_fingerprint()
-    stamp.write_text("an older generator\n")
+    assert stamp.read_text().strip() == f"{generator_fingerprint()} seed {suite.HELDOUT_DATA_SEED}"
+    assert not suite.has_sessions(tmp_path / "heldout", suite.HELDOUT_DATA_SEED + 1, 2)  # another seed's: not these
+    assert not suite.has_sessions(tmp_path / "heldout", suite.HELDOUT_DATA_SEED, 3)
+    stamp.write_text(f"an older generator seed {suite.HELDOUT_DATA_SEED}\n")
     suite.ensure_heldout(tmp_path / "heldout", 2)  # made by another generator: regenerated
     assert takes[0].motion_path.stat().st_mtime_ns > first_write
-    assert stamp.read_text().strip() == generator_fingerprint()
+    assert suite.has_sessions(tmp_path / "heldout", suite.HELDOUT_DATA_SEED, 2)
 
 
 def test_codec_mpjpe_of_the_shipped_codecs_on_real_motion_is_finite_and_small():

@@ -187,7 +187,7 @@ class HeldoutSession:
 
 
 HELDOUT_DATA_SEED = 0  # scripts/train_default.sh's data seed; its test split is held out of training
-GENERATOR_STAMP = "generator.sha256"  # in the held-out directory: the generator_fingerprint that made it
+GENERATOR_STAMP = "generator.stamp"  # in a sessions directory: the generator_fingerprint and the seed that made it
 
 
 def ensure_heldout(root: Path, n_sessions: int) -> None:
@@ -199,19 +199,32 @@ def ensure_heldout(root: Path, n_sessions: int) -> None:
     ensure_sessions(root, HELDOUT_DATA_SEED, range(period, period * (n_sessions + 1), period))
 
 
+def session_stamp(seed: int) -> str:
+    """What `ensure_sessions` writes into GENERATOR_STAMP: the current generator's fingerprint and the data seed (the
+    take ids do not name the seed)."""
+    from gesture.synth.build import generator_fingerprint
+
+    return f"{generator_fingerprint()} seed {seed}"
+
+
+def has_sessions(root: Path, seed: int, count: int) -> bool:
+    """`root` holds at least `count` test takes, made by the current generator from `seed`."""
+    stamp = root / GENERATOR_STAMP
+    return (stamp.is_file() and stamp.read_text().strip() == session_stamp(seed)
+            and len(_test_takes(root)) >= count)
+
+
 def ensure_sessions(root: Path, seed: int, numbers: range) -> None:
     """Generate synthetic sessions `numbers` of `seed` into `root`, all in its test split, unless it already holds
-    as many test takes made by the current generator (``GENERATOR_STAMP``)."""
+    as many test takes made by the current generator from that seed."""
     from gesture.synth.config import SynthConfig
-    from gesture.synth.build import SESSION_MINUTES, generate_sessions, generator_fingerprint
+    from gesture.synth.build import SESSION_MINUTES, generate_sessions
 
-    stamp, fingerprint = root / GENERATOR_STAMP, generator_fingerprint()
-    takes = _test_takes(root) if root.is_dir() else []
-    if stamp.is_file() and stamp.read_text().strip() == fingerprint and len(takes) >= len(numbers):
+    if has_sessions(root, seed, len(numbers)):
         return
     ids = generate_sessions(SynthConfig(), root, seed, numbers, SESSION_MINUTES, jobs=2)
     (root / "train_test_split.csv").write_text("id,type\n" + "".join(f"{i},test\n" for i in ids))
-    stamp.write_text(fingerprint + "\n")
+    (root / GENERATOR_STAMP).write_text(session_stamp(seed) + "\n")
 
 
 def _session_order(take: Take) -> list:
