@@ -160,7 +160,8 @@ def build_stabilizer(cfg: StabilizerConfig) -> Optional[ArmStabilizer]:
     if not cfg.enabled:
         return None
     try:
-        return ArmStabilizer(cfg.joints, MOTION_FPS, cfg.min_cutoff_hz, cfg.speed_gain_hz, cfg.speed_cutoff_hz)
+        return ArmStabilizer(cfg.joints, MOTION_FPS, cfg.min_cutoff_hz, cfg.speed_gain_hz, cfg.speed_cutoff_hz,
+                             cfg.hold_rad, cfg.settle_share)
     except ValueError as error:
         raise ConfigError(f"gesture.stabilizer: {error}") from None
 

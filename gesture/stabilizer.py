@@ -11,6 +11,11 @@ rotation each frame. ``alpha`` comes from a cutoff that rises with the joint's s
 Roussel and Vogel, "1 Euro Filter", CHI 2012): slow drift is smoothed hard and comes to rest, fast strokes pass with
 little lag (at 3 rad/s with the default options an elbow's cutoff is 1.2 Hz, a time constant of 0.13 s, a wrist's
 2.9 Hz).
+
+A low-pass alone smooths a steady drift but never stops it: its output moves as fast as its input. So a joint with a
+``hold_rad`` also holds: once its output has settled within ``settle_share`` of that angle of the input, it stays put
+until the input has left it by more than ``hold_rad``, then follows as above. A drift becomes holds and short
+catch-ups, as a speaker holds a pose and then moves on; the output never strays more than ``hold_rad`` from the input.
 """
 
 from __future__ import annotations
@@ -30,6 +35,14 @@ def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.concatenate([aw * bw - (av * bv).sum(-1, keepdims=True), aw * bv + bw * av + np.cross(av, bv)], -1)
 
 
+def _per_joint(name: str, value: float | Sequence[float], joints: int) -> np.ndarray:
+    """(joints,) one value for every joint, or one per joint."""
+    array = np.asarray(value, np.float64)
+    if array.ndim > 1 or array.size not in (1, joints):
+        raise ValueError(f"{name}: need one value or one per joint ({joints}), got {value}")
+    return np.broadcast_to(array, (joints,)).copy()
+
+
 def smoothing_share(cutoff_hz: np.ndarray | float, fps: float) -> np.ndarray:
     """The exponential smoother's share of the new value per frame for a first-order low-pass at `cutoff_hz`."""
     tau_s = 1.0 / (2 * np.pi * np.asarray(cutoff_hz, np.float64))
@@ -40,32 +53,39 @@ def smoothing_share(cutoff_hz: np.ndarray | float, fps: float) -> np.ndarray:
 class StabilizerState:
     rotation: Optional[np.ndarray]  # (J, 4) the last output rotation per joint (quaternion); None before the first frame
     speed_rad_s: np.ndarray  # (J,) the smoothed angular speed of the input against the last output
+    holding: np.ndarray  # (J,) bool: the joint holds its last output
 
 
 class ArmStabilizer:
     """`step(poses (F, 55, 3))` smooths `joints`' local rotations frame by frame; `reset()` per session.
 
     `min_cutoff_hz`: the cutoff at rest (one for all joints, or one per joint); `speed_gain_hz`: the cutoff's rise
-    per rad/s of speed; `speed_cutoff_hz`: the cutoff of the speed estimate itself."""
+    per rad/s of speed; `speed_cutoff_hz`: the cutoff of the speed estimate itself; `hold_rad`: how far the input may
+    leave a held output (one for all joints, or one per joint; 0: no holds); `settle_share`: the share of `hold_rad`
+    within which a following output settles into a hold."""
 
     def __init__(self, joints: Sequence[int], fps: float, min_cutoff_hz: float | Sequence[float],
-                 speed_gain_hz: float, speed_cutoff_hz: float = 1.0) -> None:
+                 speed_gain_hz: float, speed_cutoff_hz: float = 1.0, hold_rad: float | Sequence[float] = 0.0,
+                 settle_share: float = 0.25) -> None:
         if not joints or not all(0 <= j < NUM_JOINTS for j in joints):
             raise ValueError(f"joints: need one or more of 0..{NUM_JOINTS - 1}, got {list(joints)}")
-        cutoffs_hz = np.asarray(min_cutoff_hz, np.float64)
-        if cutoffs_hz.ndim > 1 or cutoffs_hz.size not in (1, len(joints)):
-            raise ValueError(f"min_cutoff_hz: need one value or one per joint ({len(joints)}), got {min_cutoff_hz}")
+        cutoffs_hz, hold_rad = (_per_joint(name, value, len(joints)) for name, value
+                                in (("min_cutoff_hz", min_cutoff_hz), ("hold_rad", hold_rad)))
+        if hold_rad.min() < 0 or not 0 < settle_share < 1:
+            raise ValueError(f"hold_rad must be >= 0 and settle_share in (0, 1), got hold_rad={list(hold_rad)}, "
+                             f"settle_share={settle_share}")
         if min(cutoffs_hz.min(), speed_cutoff_hz) <= 0 or speed_gain_hz < 0 or fps <= 0:
             raise ValueError(f"cutoffs and fps must be > 0 and the gain >= 0, got min_cutoff_hz={min_cutoff_hz}, "
                              f"speed_cutoff_hz={speed_cutoff_hz}, speed_gain_hz={speed_gain_hz}, fps={fps}")
         self.joints = list(joints)
         self.fps, self.speed_gain_hz = fps, speed_gain_hz
-        self.min_cutoff_hz = np.broadcast_to(cutoffs_hz, (len(joints),))  # (J,)
+        self.min_cutoff_hz = cutoffs_hz  # (J,)
+        self.hold_rad, self.settle_rad = hold_rad, settle_share * hold_rad  # (J,) each
         self.speed_share = float(smoothing_share(speed_cutoff_hz, fps))
         self.reset()
 
     def reset(self) -> None:
-        self.state = StabilizerState(None, np.zeros(len(self.joints)))
+        self.state = StabilizerState(None, np.zeros(len(self.joints)), np.zeros(len(self.joints), bool))
 
     def _frame(self, target: np.ndarray) -> np.ndarray:
         """(J, 4) this frame's input rotations (unit quaternions) -> the output rotations."""
@@ -79,7 +99,9 @@ class ArmStabilizer:
         sin_half = np.linalg.norm(remaining[:, 1:], axis=-1)  # (J,)
         angle = 2 * np.arctan2(sin_half, remaining[:, 0])
         s.speed_rad_s = s.speed_rad_s + self.speed_share * (angle * self.fps - s.speed_rad_s)
+        s.holding = np.where(s.holding, angle <= self.hold_rad, angle < self.settle_rad)
         alpha = smoothing_share(self.min_cutoff_hz + self.speed_gain_hz * s.speed_rad_s, self.fps)  # (J,)
+        alpha = np.where(s.holding, 0.0, alpha)
         axis = remaining[:, 1:] / np.maximum(sin_half, 1e-12)[:, None]
         half = 0.5 * alpha * angle
         moved = _quaternion_product(s.rotation, np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * axis], -1))

@@ -7,6 +7,7 @@ import torch
 
 from core.config import ConfigError
 from core.timing import MOTION_FPS
+from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.config import StabilizerConfig
 from gesture.eval.realism import STILL_RAD_S, angular_speeds
 from gesture.generator import GestureGenerator
@@ -18,9 +19,8 @@ torch.set_num_threads(1)
 ARMS = (18, 19, 20, 21)
 
 
-def _stabilizer() -> ArmStabilizer:
-    cfg = StabilizerConfig()
-    return ArmStabilizer(cfg.joints, MOTION_FPS, cfg.min_cutoff_hz, cfg.speed_gain_hz, cfg.speed_cutoff_hz)
+def _stabilizer(**options) -> ArmStabilizer:
+    return build_stabilizer(StabilizerConfig(enabled=True, **options))
 
 
 def _wandering_arms(frames: int, seed: int = 0) -> np.ndarray:
@@ -69,6 +69,20 @@ def test_slow_drift_comes_to_rest_and_a_fast_stroke_arrives():
     assert abs(out[25 + int(0.5 * MOTION_FPS), 18, 2] - 0.8) < 0.05  # within 0.05 rad half a second after the stroke
 
 
+def test_a_drift_becomes_holds_within_hold_rad_of_the_input():
+    drift = _wandering_arms(250)
+    holding = _stabilizer()
+    out = holding.step(drift)
+    smooth = _stabilizer(hold_rad=(0.0,) * 4).step(drift)
+    assert (angular_speeds(smooth, MOTION_FPS)[:, 18:20] == 0).mean() == 0.0  # a low-pass alone never stops
+    held = angular_speeds(out, MOTION_FPS)[:, 18:20] == 0  # (T-1, 2) frames whose output did not move
+    assert held.mean() > 0.1
+    apart = np.linalg.norm(matrix_to_axis_angle_np(np.swapaxes(axis_angle_to_matrix_np(drift[1:, 18:20].astype(
+        np.float64)), -1, -2) @ axis_angle_to_matrix_np(out[1:, 18:20].astype(np.float64))), axis=-1)  # (T-1, 2) rad
+    assert apart[held].max() <= holding.hold_rad[0] + 1e-6
+    np.testing.assert_array_equal(out[:, 20:22], smooth[:, 20:22])  # the wrists have no hold
+
+
 def test_generator_applies_it_last():
     conditions = [(5, np.arange(8) % 12)] * 6
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
@@ -89,10 +103,14 @@ def test_bad_options_give_errors_that_name_them():
         StabilizerConfig(min_cutoff_hz=(1.0,))
     with pytest.raises(ConfigError, match="gesture.stabilizer.speed_gain_hz: must be >= 0"):
         StabilizerConfig(speed_gain_hz=-1.0)
+    with pytest.raises(ConfigError, match=r"gesture.stabilizer.hold_rad: need one value >= 0 per joint .* \(4\)"):
+        StabilizerConfig(hold_rad=(0.1, -0.1, 0.0, 0.0))
+    with pytest.raises(ConfigError, match=r"gesture.stabilizer.settle_share: must be in \(0, 1\)"):
+        StabilizerConfig(settle_share=1.0)
     with pytest.raises(ConfigError, match="gesture.stabilizer.joints: must name at least one joint"):
         StabilizerConfig(joints=())
     with pytest.raises(ConfigError, match=r"gesture.stabilizer: joints: need one or more of 0..54, got \[18, 60\]"):
-        build_stabilizer(StabilizerConfig(enabled=True, joints=(18, 60), min_cutoff_hz=(1.0, 1.0)))
+        build_stabilizer(StabilizerConfig(enabled=True, joints=(18, 60), min_cutoff_hz=(1.0, 1.0), hold_rad=(0.0, 0.0)))
     assert build_stabilizer(StabilizerConfig()) is None
     with pytest.raises(ValueError, match=r"poses: expected \(frames, 55, 3\)"):
         _stabilizer().step(np.zeros((2, 24, 3)))
