@@ -15,7 +15,7 @@ little lag (at 3 rad/s with the default options an elbow's cutoff is 1.2 Hz, a t
 A low-pass alone smooths a steady drift but never stops it: its output moves as fast as its input. So a joint with a
 ``hold_rad`` also holds: once its output has settled within ``settle_share`` of that angle of the input, it stays put
 until the input has left it by more than ``hold_rad``, then follows as above. A drift becomes holds and short
-catch-ups, as a speaker holds a pose and then moves on; the output never strays more than ``hold_rad`` from the input.
+catch-ups, as a speaker holds a pose and then moves on; a held output is never more than ``hold_rad`` from the input.
 """
 
 from __future__ import annotations

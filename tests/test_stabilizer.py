@@ -71,7 +71,7 @@ def test_slow_drift_comes_to_rest_and_a_fast_stroke_arrives():
 
 def test_a_drift_becomes_holds_within_hold_rad_of_the_input():
     drift = _wandering_arms(250)
-    holding = _stabilizer()
+    holding = _stabilizer(hold_rad=(0.08, 0.08, 0.0, 0.0))
     out = holding.step(drift)
     smooth = _stabilizer(hold_rad=(0.0,) * 4).step(drift)
     assert (angular_speeds(smooth, MOTION_FPS)[:, 18:20] == 0).mean() == 0.0  # a low-pass alone never stops
