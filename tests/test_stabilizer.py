@@ -110,7 +110,8 @@ def test_bad_options_give_errors_that_name_them():
     with pytest.raises(ConfigError, match="gesture.stabilizer.joints: must name at least one joint"):
         StabilizerConfig(joints=())
     with pytest.raises(ConfigError, match=r"gesture.stabilizer: joints: need one or more of 0..54, got \[18, 60\]"):
-        build_stabilizer(StabilizerConfig(enabled=True, joints=(18, 60), min_cutoff_hz=(1.0, 1.0), hold_rad=(0.0, 0.0)))
+        build_stabilizer(StabilizerConfig(enabled=True, joints=(18, 60), min_cutoff_hz=(1.0, 1.0),
+                                          hold_rad=(0.0, 0.0)))
     assert build_stabilizer(StabilizerConfig()) is None
     with pytest.raises(ValueError, match=r"poses: expected \(frames, 55, 3\)"):
         _stabilizer().step(np.zeros((2, 24, 3)))
