@@ -52,12 +52,15 @@ def test_offline_runs_are_identical_with_the_same_seed(tmp_path):
     """The whole loop, real stages: same recording and seed → the same conversation, the same generated motion
     (every step's tokens and SMPL-X parameters, bit for bit) and the same MP4, pixel for pixel and sample for
     sample (pyrender's light order once followed object addresses: see render.renderer._stable_node_type)."""
+    procs = {run: subprocess.Popen([sys.executable, "launch.py", "--headless", "--seed", "3", "--mp4",
+                                    str(tmp_path / f"{run}.mp4"), "--report", str(tmp_path / run), "--set",
+                                    "render.size=96"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                   text=True)
+             for run in ("a", "b")}  # side by side: an offline run must not depend on the machine's load
     runs = []
-    for run in ("a", "b"):
-        proc = subprocess.run([sys.executable, "launch.py", "--headless", "--seed", "3", "--mp4",
-                               str(tmp_path / f"{run}.mp4"), "--report", str(tmp_path / run), "--set",
-                               "render.size=96"], cwd=ROOT, capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, proc.stdout + proc.stderr
+    for run, proc in procs.items():
+        output, _ = proc.communicate(timeout=600)
+        assert proc.returncode == 0, output
         with np.load(tmp_path / run / "motion.npz") as motion:
             arrays = {k: motion[k] for k in motion.files}
         runs.append((arrays, (tmp_path / run / "transcript.json").read_text(), decode(tmp_path / f"{run}.mp4")))

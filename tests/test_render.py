@@ -100,8 +100,10 @@ print(digest.hexdigest())
 
 def test_the_same_poses_render_the_same_pixels_in_every_process():
     """Object addresses differ between processes; the image must not (pyrender's light order followed them)."""
-    digests = {subprocess.run([sys.executable, "-c", FRAMES_HASH_SCRIPT], capture_output=True, text=True, check=True,
-                              timeout=300, cwd=ROOT).stdout.strip() for _ in range(4)}
+    procs = [subprocess.Popen([sys.executable, "-c", FRAMES_HASH_SCRIPT], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+             for _ in range(4)]
+    digests = {proc.communicate(timeout=300)[0].strip() for proc in procs}
+    assert [proc.returncode for proc in procs] == [0] * 4
     assert len(digests) == 1 and len(digests.pop()) == 40
 
 
