@@ -6,27 +6,43 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from render.testing import check_av_sync, decode, needs_osmesa, silhouette, silhouette_center
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@needs_osmesa
-def test_demo_listens_answers_and_gestures(tmp_path):
-    out = tmp_path / "demo.mp4"
-    proc = subprocess.run([sys.executable, "launch.py", "--headless", "--mp4", str(out), "--report", str(tmp_path),
-                           "--set", "render.size=160"], cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    # an offline run's table: throughput and compute, not queueing shown as end-to-end latency
-    assert "x real time" in proc.stdout and "frames/s" in proc.stdout and "end to end" not in proc.stdout
+@pytest.fixture(scope="module")
+def demo_runs(tmp_path_factory) -> dict:
+    """The demo as `make demo` runs it ("a") and again with its default seed spelled out ("b"), side by side (an
+    offline run must not depend on the machine's load) -> {run: (stdout, report dir, mp4)}."""
+    root = tmp_path_factory.mktemp("demo")
+    seeds = {"a": [], "b": ["--seed", "0"]}
+    procs = {run: subprocess.Popen([sys.executable, "launch.py", "--headless", *seed, "--mp4", str(root / f"{run}.mp4"),
+                                    "--report", str(root / run), "--set", "render.size=160"], cwd=ROOT,
+                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+             for run, seed in seeds.items()}
+    runs = {}
+    for run, proc in procs.items():
+        output, _ = proc.communicate(timeout=600)
+        assert proc.returncode == 0, output
+        runs[run] = (output, root / run, root / f"{run}.mp4")
+    return runs
 
-    latency = json.loads((tmp_path / "latency.json").read_text())
+
+@needs_osmesa
+def test_demo_listens_answers_and_gestures(demo_runs):
+    stdout, report, out = demo_runs["a"]
+    # an offline run's table: throughput and compute, not queueing shown as end-to-end latency
+    assert "x real time" in stdout and "frames/s" in stdout and "end to end" not in stdout
+
+    latency = json.loads((report / "latency.json").read_text())
     n_steps = latency["steps_measured"]
     assert n_steps > 150 and set(latency["stages"]) == {"io", "dialogue", "gesture", "render"}
     assert all(c.get("dropped", 0) == 0 and c.get("lost", 0) == 0 for c in latency["counters"].values())
 
-    turns = json.loads((tmp_path / "transcript.json").read_text())["turns"]
+    turns = json.loads((report / "transcript.json").read_text())["turns"]
     user = " ".join(t["text"] for t in turns if t["speaker"] == "user")
     agent = [t for t in turns if t["speaker"] == "agent"]
     assert {"john", "dashwood"} & set(user.split())  # the real recording was understood
@@ -48,22 +64,15 @@ def test_demo_listens_answers_and_gestures(tmp_path):
 
 
 @needs_osmesa
-def test_offline_runs_are_identical_with_the_same_seed(tmp_path):
+def test_offline_runs_are_identical_with_the_same_seed(demo_runs):
     """The whole loop, real stages: same recording and seed → the same conversation, the same generated motion
     (every step's tokens and SMPL-X parameters, bit for bit) and the same MP4, pixel for pixel and sample for
     sample (pyrender's light order once followed object addresses: see render.renderer._stable_node_type)."""
-    procs = {run: subprocess.Popen([sys.executable, "launch.py", "--headless", "--seed", "3", "--mp4",
-                                    str(tmp_path / f"{run}.mp4"), "--report", str(tmp_path / run), "--set",
-                                    "render.size=96"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                   text=True)
-             for run in ("a", "b")}  # side by side: an offline run must not depend on the machine's load
     runs = []
-    for run, proc in procs.items():
-        output, _ = proc.communicate(timeout=600)
-        assert proc.returncode == 0, output
-        with np.load(tmp_path / run / "motion.npz") as motion:
+    for _, report, mp4 in demo_runs.values():
+        with np.load(report / "motion.npz") as motion:
             arrays = {k: motion[k] for k in motion.files}
-        runs.append((arrays, (tmp_path / run / "transcript.json").read_text(), decode(tmp_path / f"{run}.mp4")))
+        runs.append((arrays, (report / "transcript.json").read_text(), decode(mp4)))
     (motion_a, transcript_a, video_a), (motion_b, transcript_b, video_b) = runs
     assert transcript_a == transcript_b
     assert motion_a.keys() == motion_b.keys() and len(motion_a["tokens"]) > 100

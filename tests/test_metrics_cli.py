@@ -9,14 +9,23 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from gesture.eval.evaluate import main
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _evaluate(*args) -> subprocess.CompletedProcess:
+    """The command itself, in a fresh interpreter."""
     return subprocess.run([sys.executable, "-m", "gesture.evaluate", *map(str, args)], cwd=REPO,
                           capture_output=True, text=True)
+
+
+def _evaluate_here(capsys, *args) -> subprocess.CompletedProcess:
+    """The command's main() in this process (a fresh interpreter spends seconds importing torch and scipy)."""
+    returncode = main(list(map(str, args)))
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(args, returncode, out, err)
 
 
 def _assert_one_line_exit_2(proc: subprocess.CompletedProcess, *fragments: str) -> None:
@@ -50,19 +59,20 @@ def _bad_motion_files(tmp_path: Path) -> dict:
 
 @needs_clip
 @pytest.mark.parametrize("case", ["empty", "strings", "notes", "one_frame", "nan"])
-def test_bad_motion_file_gives_one_line_and_exit_2(tmp_path, case):
+def test_bad_motion_file_gives_one_line_and_exit_2(tmp_path, capsys, case):
     files = {path.stem: (path, message) for path, message in _bad_motion_files(tmp_path).items()}
     path, message = files[case]
-    _assert_one_line_exit_2(_evaluate("--motion", path, "--gt", CLIP_NPZ), str(path), message)
+    _assert_one_line_exit_2(_evaluate_here(capsys, "--motion", path, "--gt", CLIP_NPZ), str(path), message)
 
 
 @needs_clip
-def test_nan_wav_gives_one_line_and_exit_2(tmp_path):
+def test_nan_wav_gives_one_line_and_exit_2(tmp_path, capsys):
     wav = tmp_path / "nan.wav"
     samples = np.zeros(16000, np.float32)
     samples[100] = np.nan
     sf.write(wav, samples, 16000, subtype="FLOAT")
-    _assert_one_line_exit_2(_evaluate("--motion", CLIP_NPZ, "--gt", CLIP_NPZ, "--wav", wav), str(wav), "NaN")
+    _assert_one_line_exit_2(_evaluate_here(capsys, "--motion", CLIP_NPZ, "--gt", CLIP_NPZ, "--wav", wav), str(wav),
+                            "NaN")
 
 
 @needs_clip
