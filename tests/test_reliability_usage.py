@@ -31,13 +31,27 @@ def talk(tmp_path) -> Path:
     return path
 
 
-def run_usage_error(cmd: list[str], cwd: Path = ROOT) -> tuple[int, str, int]:
-    """Run an entry point to completion in its own session; (exit code, stderr, pid)."""
-    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+def start_usage_error(cmd: list[str], cwd: Path = ROOT) -> subprocess.Popen:
+    """Start an entry point in its own session."""
+    return subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+
+
+def finish_usage_error(proc: subprocess.Popen) -> tuple[int, str, int]:
+    """Wait for a started entry point; (exit code, stderr, pid)."""
     out, err = proc.communicate(timeout=300)
     assert out == "", out
     return proc.returncode, err, proc.pid
+
+
+def run_usage_error(cmd: list[str], cwd: Path = ROOT) -> tuple[int, str, int]:
+    return finish_usage_error(start_usage_error(cmd, cwd))
+
+
+def run_usage_errors(cmds: dict[str, list[str]]) -> dict[str, tuple[int, str, int]]:
+    """Every command started at once (each spends most of its time importing) -> {name: (exit code, stderr, pid)}."""
+    started = {name: start_usage_error(cmd) for name, cmd in cmds.items()}
+    return {name: finish_usage_error(proc) for name, proc in started.items()}
 
 
 def assert_one_line_and_nothing_left(code: int, err: str, pid: int, must_contain: str) -> None:
@@ -164,16 +178,30 @@ PLAY_CASES = {
 }
 
 
+@pytest.fixture(scope="module")
+def play_cases(tmp_path_factory) -> dict[str, tuple[Path, Path]]:
+    """A directory per PLAY_CASES case and the motion file made there: {case: (dir, motion)}."""
+    made = {}
+    for case, (make, _, _) in PLAY_CASES.items():
+        folder = tmp_path_factory.mktemp("play")
+        made[case] = folder, make(folder)
+    return made
+
+
+@pytest.fixture(scope="module")
+def play_results(play_cases) -> dict[str, tuple[int, str, int]]:
+    """`render.play` on every case, side by side."""
+    return run_usage_errors({case: [sys.executable, "-m", "render.play", str(motion),
+                                    *[a.format(d=folder) for a in PLAY_CASES[case][1]],
+                                    "--mp4", str(folder / "out" / "video.mp4")]
+                             for case, (folder, motion) in play_cases.items()})
+
+
 @pytest.mark.parametrize("case", sorted(PLAY_CASES))
-def test_render_play_rejects_bad_input_in_one_line(tmp_path, case):
-    make, extra, message = PLAY_CASES[case]
-    motion = make(tmp_path)
-    out = tmp_path / "out" / "video.mp4"
-    cmd = [sys.executable, "-m", "render.play", str(motion), *[a.format(d=tmp_path) for a in extra],
-           "--mp4", str(out)]
-    code, err, pid = run_usage_error(cmd)
-    assert_one_line_and_nothing_left(code, err, pid, message)
-    assert not out.exists() and not list(tmp_path.rglob("*.partial"))
+def test_render_play_rejects_bad_input_in_one_line(play_cases, play_results, case):
+    folder, _ = play_cases[case]
+    assert_one_line_and_nothing_left(*play_results[case], PLAY_CASES[case][2])
+    assert not (folder / "out" / "video.mp4").exists() and not list(folder.rglob("*.partial"))
 
 
 # ---- the training and data CLIs -----------------------------------------------------------------------------------
@@ -194,11 +222,20 @@ CLI_CASES = {
 }
 
 
+@pytest.fixture(scope="module")
+def cli_cases(tmp_path_factory) -> dict[str, Path]:
+    """An empty directory per CLI_CASES case."""
+    return {case: tmp_path_factory.mktemp("cli") for case in CLI_CASES}
+
+
+@pytest.fixture(scope="module")
+def cli_results(cli_cases) -> dict[str, tuple[int, str, int]]:
+    """Every CLI_CASES command, side by side."""
+    return run_usage_errors({case: [sys.executable, "-m", *[a.format(d=d) for a in CLI_CASES[case][0]]]
+                             for case, d in cli_cases.items()})
+
+
 @pytest.mark.parametrize("case", sorted(CLI_CASES))
-def test_training_and_data_clis_reject_bad_arguments_in_one_line(tmp_path, case):
-    args, message = CLI_CASES[case]
-    (tmp_path / "empty.yaml").write_text("")
-    cmd = [sys.executable, "-m", *[a.format(d=tmp_path) for a in args]]
-    code, err, pid = run_usage_error(cmd)
-    assert_one_line_and_nothing_left(code, err, pid, message)
-    assert not (tmp_path / "out").exists() and not (tmp_path / "tok").exists()
+def test_training_and_data_clis_reject_bad_arguments_in_one_line(cli_cases, cli_results, case):
+    assert_one_line_and_nothing_left(*cli_results[case], CLI_CASES[case][1])
+    assert not (cli_cases[case] / "out").exists() and not (cli_cases[case] / "tok").exists()
