@@ -9,7 +9,7 @@ PIP_INSTALL := $(PIP) install -q --no-compile
 STAMP := $(VENV)/.installed
 PYTEST_ARGS ?= -m "not slow"
 
-.PHONY: setup demo test test-all bench clean
+.PHONY: setup bytecode demo test test-all bench clean
 
 setup: $(STAMP)
 
@@ -22,11 +22,16 @@ $(STAMP): requirements.txt requirements-nodeps.txt constraints.txt scripts/insta
 	$(PY) -m compileall -q -j 0 $(VENV)/lib > /dev/null || true
 	touch $@
 
-demo: setup
+# the project's own modules, compiled once: the tests start about a hundred Python processes, and where
+# PYTHONDONTWRITEBYTECODE is set each would compile them again (about 1 s for a stage's imports)
+bytecode:
+	$(PY) -m compileall -q -j 0 launch.py $(dir $(wildcard */__init__.py)) > /dev/null
+
+demo: setup bytecode
 	mkdir -p out
 	OPENBLAS_NUM_THREADS=1 $(PY) launch.py --headless --mp4 out/demo.mp4 --report out/demo-report
 
-test: setup
+test: setup bytecode
 	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS); echo $$? > .pytest-exit; exit $$(cat .pytest-exit)
 
 test-all: PYTEST_ARGS =
@@ -37,3 +42,4 @@ bench: setup
 
 clean:
 	rm -rf $(VENV) runs out .pytest-exit
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -exec rm -rf {} +
