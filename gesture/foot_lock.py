@@ -10,8 +10,15 @@ leg's anchor. While it lasts, the decoded leg is changed as little as puts the a
 bends further about its own axis until the hip-ankle distance is right, then the thigh swings about the hip,
 keeping its twist, and the ankle keeps its decoded world orientation. The lock lets go when contact ends or the
 decoded ankle has moved `release_m` from the anchor (a step). The leg's local rotations turn from the decoded ones
-to the solved ones and back over `blend_s`, so locking and letting go never jump. Only hips, knees and ankles
-change.
+to the solved ones over `blend_s` (a foot lands) and back over `step_s` (the step to where the decoded foot is), so
+locking and letting go never jump. Only hips, knees and ankles change.
+
+The decoded contacts stay on through most of the data's steps (the decoded feet slide through them instead), so
+`release_m` and `step_s` set the pacing. They were chosen on four validation sessions (synthetic seed 1, 120 s each,
+never the real clip) so the agent's feet match the ground truth's: release 0.2 m, blend 0.2 s and step 0.5 s gave
+11.0 steps a minute per foot (ground truth 11.6), ankles planted in 0.86 of the frames (0.87) and an ankle speed
+p90 of 0.11 m/s (0.12); a release of 0.1 m stepped 21.6 times a minute, and a step as quick as the landing (0.2 s)
+left the p90 at 0.03 m/s.
 """
 
 from __future__ import annotations
@@ -74,12 +81,15 @@ class FootLock:
     """`step(poses (F, 55, 3), trans (F, 3), contacts (F, 4))` -> poses with planted feet held still; `reset()` per
     session. `contacts` are the decoded contacts of CONTACT_JOINTS (ankles, then feet)."""
 
-    def __init__(self, skeleton: Skeleton, fps: float, release_m: float = 0.1, blend_s: float = 0.2) -> None:
-        if release_m <= 0 or blend_s <= 0 or fps <= 0:
-            raise ValueError(f"release_m, blend_s and fps must be > 0, got {release_m}, {blend_s} and {fps}")
+    def __init__(self, skeleton: Skeleton, fps: float, release_m: float = 0.2, blend_s: float = 0.2,
+                 step_s: float = 0.5) -> None:
+        if min(release_m, blend_s, step_s, fps) <= 0:
+            raise ValueError(f"release_m, blend_s, step_s and fps must be > 0, got {release_m}, {blend_s}, {step_s} "
+                             f"and {fps}")
         self.rest = skeleton.rest_joints.astype(np.float64)  # (J, 3)
         self.contact_index = [CONTACT_JOINTS.index(ankle) for _, _, ankle in LEGS]
-        self.release_m, self.blend_step = release_m, 1.0 / (blend_s * fps)
+        self.release_m = release_m
+        self.lock_per_frame, self.release_per_frame = 1.0 / (blend_s * fps), 1.0 / (step_s * fps)  # weight change
         self.reset()
 
     def reset(self) -> None:
@@ -92,7 +102,8 @@ class FootLock:
         if lock.anchor is None:
             return None
         lock.releasing |= not planted or float(np.linalg.norm(ankle - lock.anchor)) > self.release_m
-        lock.weight = min(1.0, lock.weight + self.blend_step) if not lock.releasing else lock.weight - self.blend_step
+        lock.weight = (lock.weight - self.release_per_frame if lock.releasing
+                       else min(1.0, lock.weight + self.lock_per_frame))
         if lock.weight <= 0:
             lock.anchor, lock.weight = None, 0.0
         return lock.anchor

@@ -18,7 +18,8 @@ torch.set_num_threads(1)
 SKELETON = Skeleton.default()
 ANKLES = [ankle for _, _, ankle in LEGS]
 LEG_JOINTS = [j for leg in LEGS for j in leg]
-BLEND_FRAMES = int(0.2 * MOTION_FPS)
+BLEND_FRAMES = int(0.2 * MOTION_FPS)  # a landing (blend_s)
+STEP_FRAMES = int(np.ceil(0.5 * MOTION_FPS))  # a step back to the decoded leg (step_s)
 
 
 def _sliding_stance(frames: int, hip_swing_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -64,7 +65,8 @@ def test_legs_without_contact_pass_untouched_and_a_lifted_foot_returns_to_the_de
     contacts[20:] = 0.0  # the feet lift at frame 20
     out = _stepped(FootLock(SKELETON, MOTION_FPS), poses, trans, contacts)
     assert not np.allclose(out[19], poses[19])
-    np.testing.assert_array_equal(out[20 + BLEND_FRAMES:], poses[20 + BLEND_FRAMES:])
+    np.testing.assert_array_equal(out[20 + STEP_FRAMES:], poses[20 + STEP_FRAMES:])
+    assert not np.allclose(out[20 + STEP_FRAMES - 2], poses[20 + STEP_FRAMES - 2])  # not before it
 
 
 def test_a_step_lets_go_of_the_lock():
@@ -113,5 +115,7 @@ def test_bad_inputs_and_options_give_clear_errors():
         FootLockConfig(release_m=0.0)
     with pytest.raises(ConfigError, match="gesture.foot_lock.blend_s: must be > 0"):
         FootLockConfig(blend_s=-1.0)
+    with pytest.raises(ConfigError, match="gesture.foot_lock.step_s: must be > 0"):
+        FootLockConfig(step_s=0.0)
     assert build_foot_lock(FootLockConfig()) is None
     assert isinstance(build_foot_lock(FootLockConfig(enabled=True)), FootLock)
