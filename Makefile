@@ -2,14 +2,16 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
-# pip byte-compiles on one core; compileall does the same on all of them (processes here do not write .pyc files
-# when PYTHONDONTWRITEBYTECODE is set, and torch imports in 9 s instead of 4 without them); as with pip, a file that
-# does not compile (torch's Python 3.12-only test helpers) is left alone
+# Python writes each module's bytecode the first time it imports it, once for all later processes (the tests start
+# about a hundred): where the environment sets PYTHONDONTWRITEBYTECODE, every process would compile torch again
+# (9 s to import it instead of 4 on the 2-core EPYC), and compiling all of .venv up front takes 37 s
+unexport PYTHONDONTWRITEBYTECODE
 PIP_INSTALL := $(PIP) install -q --no-compile
 STAMP := $(VENV)/.installed
-PYTEST_ARGS ?= -m "not slow"
+# two workers, one per core; a module's tests stay on one worker, so its module fixtures run once
+PYTEST_ARGS ?= -m "not slow" -n 2 --dist loadfile
 
-.PHONY: setup bytecode demo test test-all bench clean
+.PHONY: setup demo test test-all bench clean
 
 setup: $(STAMP)
 
@@ -19,19 +21,13 @@ $(STAMP): requirements.txt requirements-nodeps.txt constraints.txt scripts/insta
 	$(PIP_INSTALL) torch==2.13.0
 	$(PIP_INSTALL) -c constraints.txt -r requirements.txt
 	$(PIP_INSTALL) --no-deps -r requirements-nodeps.txt
-	$(PY) -m compileall -q -j 0 $(VENV)/lib > /dev/null || true
 	touch $@
 
-# the project's own modules, compiled once: the tests start about a hundred Python processes, and where
-# PYTHONDONTWRITEBYTECODE is set each would compile them again (about 1 s for a stage's imports)
-bytecode:
-	$(PY) -m compileall -q -j 0 launch.py $(dir $(wildcard */__init__.py)) > /dev/null
-
-demo: setup bytecode
+demo: setup
 	mkdir -p out
 	OPENBLAS_NUM_THREADS=1 $(PY) launch.py --headless --mp4 out/demo.mp4 --report out/demo-report
 
-test: setup bytecode
+test: setup
 	OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS); echo $$? > .pytest-exit; exit $$(cat .pytest-exit)
 
 test-all: PYTEST_ARGS =

@@ -103,14 +103,16 @@ class LowpassNoise:
     noise at `reset` so that the first frames are already stationary."""
 
     def __init__(self, cutoff_hz: Sequence[float], fps: float) -> None:
-        sos = [lowpass_sos(float(hz), fps) for hz in cutoff_hz]
+        cutoffs, channel_cutoff = np.unique(np.asarray(cutoff_hz, np.float64), return_inverse=True)  # one design each
+        sos = [lowpass_sos(float(hz), fps) for hz in cutoffs]
         if any(len(s) != 1 for s in sos):
             raise ValueError("LowpassNoise runs one second-order section per channel")
-        coefficients = np.stack([s[0] for s in sos])  # (C, 6): b0 b1 b2 a0 a1 a2, a0 = 1
+        coefficients = np.stack([s[0] for s in sos])[channel_cutoff]  # (C, 6): b0 b1 b2 a0 a1 a2, a0 = 1
         self.b, self.a = coefficients[:, :3], coefficients[:, 4:]  # (C, 3), (C, 2)
-        self.gain = np.array([lowpass_gain(s, fps, float(hz)) for s, hz in zip(sos, cutoff_hz)])  # (C,)
-        self.warmup = max(lowpass_warmup_frames(float(hz), fps) for hz in cutoff_hz)
-        self.state = np.zeros((len(sos), 2))  # (C, 2)
+        gains = np.array([lowpass_gain(s, fps, float(hz)) for s, hz in zip(sos, cutoffs)])
+        self.gain = gains[channel_cutoff]  # (C,)
+        self.warmup = max(lowpass_warmup_frames(float(hz), fps) for hz in cutoffs)
+        self.state = np.zeros((len(channel_cutoff), 2))  # (C, 2)
 
     @property
     def channels(self) -> int:

@@ -31,9 +31,9 @@ def test_cli_refuses_bad_options_by_name(capsys):
 
 
 def test_a_larger_bias_repeats_more_often_on_a_validation_session(tmp_path):
-    report = hold_bias.measure(REPO / "configs" / "default.yaml", [0.0, 3.0], tmp_path / "validation", 1, 12.0,
+    report = hold_bias.measure(REPO / "configs" / "default.yaml", [0.0, 3.0], tmp_path / "validation", 1, 6.0,
                                seed=0, progress=lambda msg: None)
-    assert report["sessions"] == ["31_synth_0_1_1"] and report["seconds"] == pytest.approx(12.0)
+    assert report["sessions"] == ["31_synth_0_1_1"] and report["seconds"] == pytest.approx(6.0)
     level0 = {b: rates[0] for b, rates in report["by_bias"].items()}
     assert level0["3.0"] > level0["0.0"] + 0.2
     assert 0 < report["tokens"][0] < 1 and report["closest"] in (0.0, 3.0)
