@@ -106,6 +106,9 @@ def _body_model_from_arrays(data: dict, name: str) -> BodyModel:
     if "kintree_table" in data:
         table = np.asarray(data["kintree_table"]).astype(np.int64)
         parents = tuple(-1 if i == 0 else int(p) for i, p in enumerate(table[0][:NUM_JOINTS]))
+        if any(not 0 <= p < j for j, p in enumerate(parents[1:], start=1)):
+            raise BodyModelError(f"render.body_model: kintree_table's parents {parents} do not each come before their "
+                                 f"child. {SMPLX_HELP}")
     colours = np.tile(np.asarray(CLAY_RGB), (n, 1))
     return BodyModel(v_template, faces, weights, j_regressor, shapedirs[:, :, :SHAPE_SPACE_DIM],
                      shapedirs[:, :, SHAPE_SPACE_DIM:SHAPE_SPACE_DIM + NUM_EXPRESSIONS], posedirs,

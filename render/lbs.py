@@ -2,17 +2,18 @@
 
 Matches `smplx.SMPLX.forward` (flat hand mean, full axis-angle pose): shape and expression blendshapes, joints
 regressed from the shaped vertices, optional pose-corrective blendshapes, then LBS with the 55 joints.
+
+The joint chain is `gesture.body.skeleton.forward_kinematics`'s, run for one frame in float64 numpy: the torch
+version's per-operation overhead was half of a frame's skinning (2.7 of 5.1 ms on the 2-core EPYC).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse
-import torch
 
 from core.body import NUM_JOINTS
-from gesture.body.rotation import axis_angle_to_matrix
-from gesture.body.skeleton import JOINT_NAMES, Skeleton, forward_kinematics
+from gesture.body.rotation import axis_angle_to_matrix_np
 from render.body_model import BodyModel
 
 
@@ -37,9 +38,6 @@ class Skinner:
         self._weights = scipy.sparse.csr_matrix(np.where(np.abs(model.weights) > 1e-9, model.weights, 0.0))
         self.rest_joints = self._j_regressor @ v_shaped  # (55, 3) at zero expression
 
-    def skeleton(self, rest_joints: np.ndarray) -> Skeleton:
-        return Skeleton(JOINT_NAMES, self.model.parents, rest_joints.astype(np.float64))
-
     def __call__(self, poses: np.ndarray, trans: np.ndarray | None = None,
                  expression: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         poses = np.asarray(poses, dtype=np.float64).reshape(NUM_JOINTS, 3)
@@ -49,16 +47,27 @@ class Skinner:
             v = v.copy()
             v[self._face_rows] += (self._exprdirs[:, :len(expression)] @ expression).reshape(-1, 3)
         rest = self._j_regressor @ v  # (55, 3)
-        rotations = axis_angle_to_matrix(torch.from_numpy(poses))  # (55, 3, 3)
+        rotations = axis_angle_to_matrix_np(poses)  # (55, 3, 3)
         if self._posedirs is not None:
-            feature = (rotations[1:] - torch.eye(3, dtype=rotations.dtype)).reshape(-1).numpy()  # (486,)
+            feature = (rotations[1:] - np.eye(3)).reshape(-1)  # (486,)
             v = v + (self._posedirs @ feature).reshape(-1, 3)
-        t = None if trans is None else torch.as_tensor(np.asarray(trans, dtype=np.float64))
-        joints, globals_ = forward_kinematics(self.skeleton(rest), rotations, t)
-        globals_ = globals_.numpy()  # (55, 4, 4)
-        rot = globals_[:, :3, :3]
-        offset = globals_[:, :3, 3] - np.einsum("jab,jb->ja", rot, rest)  # G_j @ [I | -rest_j]
+        rot, joints = self._chain(rotations, rest, trans)  # (55, 3, 3), (55, 3)
+        offset = joints - np.einsum("jab,jb->ja", rot, rest)  # G_j @ [I | -rest_j]
         per_joint = np.concatenate([rot.reshape(NUM_JOINTS, 9), offset], axis=1)  # (55, 12)
         per_vertex = self._weights @ per_joint  # (V, 12)
         vertices = np.einsum("vab,vb->va", per_vertex[:, :9].reshape(-1, 3, 3), v) + per_vertex[:, 9:]
-        return vertices, joints.numpy()
+        return vertices, joints
+
+    def _chain(self, rotations: np.ndarray, rest: np.ndarray,
+               trans: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Global rotations (55, 3, 3) and positions (55, 3): G_j = G_parent(j) @ [R_j | rest_j - rest_parent(j)],
+        the root at rest_0 + trans."""
+        parents = self.model.parents
+        rot, pos = np.empty_like(rotations), np.empty_like(rest)
+        rot[0] = rotations[0]
+        pos[0] = rest[0] if trans is None else rest[0] + np.asarray(trans, dtype=np.float64).reshape(3)
+        for j in range(1, NUM_JOINTS):
+            p = parents[j]
+            rot[j] = rot[p] @ rotations[j]
+            pos[j] = pos[p] + rot[p] @ (rest[j] - rest[p])
+        return rot, pos

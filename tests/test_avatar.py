@@ -120,3 +120,14 @@ def test_missing_or_malformed_model_file_says_where_to_get_it(tmp_path):
         message = str(err.value)
         assert "https://smpl-x.is.tue.mpg.de" in message and "non-commercial" in message
         assert message.startswith("render.body_model:")
+
+
+def test_a_model_whose_parents_follow_their_children_is_refused(tmp_path, exported):
+    with np.load(exported) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["kintree_table"] = arrays["kintree_table"].copy()
+    arrays["kintree_table"][0, 4] = 7  # the left knee's parent: the left ankle, which comes after it
+    path = tmp_path / "SMPLX_NEUTRAL_2020.npz"
+    np.savez(path, **arrays)
+    with pytest.raises(BodyModelError, match="kintree_table's parents .* do not each come before their child"):
+        load_smplx_model(path)
