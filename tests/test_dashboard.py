@@ -464,6 +464,13 @@ def _drive_page(proc: subprocess.Popen, report: Path, page_script, finish_timeou
     return result, code, output
 
 
+async def _press_stop(page) -> None:
+    """Stop the run from the page, which stays open until the run shows it stopped: a page closed at once can take
+    the command with it before its WebSocket sends it (the run then never stops)."""
+    await page.evaluate("document.getElementById('stop').click()")
+    await page.wait_for("window.dashboard.phase === 'stopped'", timeout_s=30)
+
+
 REAL_CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "speech" / "librivox_0870.wav"
 VIDEO_SPREAD = """(() => {
   const c = document.getElementById('video');
@@ -530,7 +537,7 @@ def test_the_pages_microphone_is_the_users_voice(tmp_path):
             await page.wait_for("window.dashboard.micBlocks > 25", timeout_s=30)
             loud = await page.wait_for("window.dashboard.userDbfs > -45 && window.dashboard.userDbfs", timeout_s=30)
             counters = await page.evaluate("document.getElementById('micinfo').textContent")
-            await page.evaluate("document.getElementById('stop').click()")
+            await _press_stop(page)
             return {"silent": silent, "loud": loud, "micinfo": counters}
 
     seen, code, output = _drive_page(proc, report, talk, finish_timeout_s=90)
@@ -564,7 +571,7 @@ def test_the_real_dialogue_answers_the_pages_microphone(tmp_path):
             await page.evaluate("document.getElementById('mic').click()")
             await page.wait_for("document.querySelectorAll('.msg.agent span').length >= 2", timeout_s=60)
             text = await page.evaluate("document.getElementById('turns').innerText")
-            await page.evaluate("document.getElementById('stop').click()")
+            await _press_stop(page)
             return text
 
     transcript, code, output = _drive_page(proc, report, talk, finish_timeout_s=60, url_timeout_s=180)
