@@ -66,12 +66,14 @@ class FootLockConfig:
     """Foot locking on the decoded legs (gesture.foot_lock; not in the reference, off by default)."""
 
     enabled: bool = False
-    release_m: float = 0.2  # a lock lets go when the decoded ankle is this far from where it was planted
+    # A lock lets go when the decoded ankle is this far from where it was planted, while the agent is silent ...
+    release_m: float = 0.2
+    release_speaking_m: float = 0.18  # ... and while it speaks (gesture.foot_lock)
     blend_s: float = 0.2  # a landing foot's leg turns from decoded to locked over this long
     step_s: float = 0.5  # a released leg turns back to decoded over this long (the step)
 
     def __post_init__(self) -> None:
-        for name in ("release_m", "blend_s", "step_s"):
+        for name in ("release_m", "release_speaking_m", "blend_s", "step_s"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"gesture.foot_lock.{name}: must be > 0, got {getattr(self, name)}")
 

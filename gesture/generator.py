@@ -141,7 +141,7 @@ class GestureGenerator:
         if self.alternation_filter is not None:
             poses, trans = self.alternation_filter.step(poses, trans)
         if self.foot_lock is not None:
-            poses = self.foot_lock.step(poses, trans, contacts)
+            poses = self.foot_lock.step(poses, trans, contacts, agent_pcm)
         if self.stabilizer is not None:
             poses = self.stabilizer.step(poses)
         if self.micro_motion is not None:

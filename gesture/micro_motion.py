@@ -134,6 +134,22 @@ class LowpassNoise:
         return self.filter(white) / self.gain
 
 
+class SpeakingTrack:
+    """How much the agent is speaking, in [0, 1], one frame at a time: its frames louder than the idle gate's
+    silence (SPEAKING_RMS) through a one-pole of SPEAKING_SMOOTH_S, as the synthetic agent's speaking track."""
+
+    def __init__(self, fps: float) -> None:
+        self.alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
+        self.reset()
+
+    def reset(self) -> None:
+        self.value = 0.0
+
+    def step(self, rms: float) -> float:
+        self.value = self.alpha * self.value + (1 - self.alpha) * float(rms > SPEAKING_RMS)
+        return self.value
+
+
 class VoiceEnvelope:
     """The synthetic agent's speech envelope as its micro-motion uses it (gesture.synth.agent: speech_envelope, then
     micro_motion_scale's smoothing), causally: each frame's RMS over the loud level, clipped to [0, 1], then a
@@ -184,7 +200,7 @@ class MicroMotion:
         self.own_log_std = np.array([own_log_std[self.joints[k]] for k in self.own])  # (own,)
         self.own_gate = CausalSmoothNoise(np.full(len(self.own), MICRO_GATE_HZ), fps) if self.own else None
         self.listening_scale = listening_scale
-        self.speaking_alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
+        self.speaking = SpeakingTrack(fps)
         self.envelope = VoiceEnvelope(fps)
         self.reflexes = PostureReflexes(fps)
         self.changed = sorted(set(self.joints) | {j for r in self.reflexes.reflexes for j in r.joints})
@@ -197,16 +213,14 @@ class MicroMotion:
         self.gate.reset(self.rng)
         if self.own_gate is not None:
             self.own_gate.reset(self.rng)
-        self.speaking = 0.0
+        self.speaking.reset()
         self.envelope.reset()
         self.reflexes.reset()
 
     def offsets(self, rms: float) -> np.ndarray:
         """The next frame's (J, 3) axis-angle offsets, given the frame's agent audio RMS (speaking above the idle
         gate's silence)."""
-        speaking = rms > SPEAKING_RMS
-        self.speaking = self.speaking_alpha * self.speaking + (1 - self.speaking_alpha) * float(speaking)
-        turn = self.listening_scale + (1 - self.listening_scale) * self.speaking
+        turn = self.listening_scale + (1 - self.listening_scale) * self.speaking.step(rms)
         level = turn * (1 + MICRO_ENVELOPE_GAIN * (self.envelope.step(rms) - 0.5))
         gate = micro_gate(self.gate.step(self.rng.standard_normal(self.gate.channels)))[self.part]  # (J,)
         slow, fast = self.noise.step(self.rng.standard_normal(self.noise.channels)).reshape(2, -1, 3)  # (J, 3) each

@@ -152,7 +152,7 @@ def build_foot_lock(cfg: FootLockConfig) -> Optional[FootLock]:
     """The `gesture.foot_lock` layer on the decoded legs (the built-in skeleton, as the training data's), or None."""
     if not cfg.enabled:
         return None
-    return FootLock(Skeleton.default(), MOTION_FPS, cfg.release_m, cfg.blend_s, cfg.step_s)
+    return FootLock(Skeleton.default(), MOTION_FPS, cfg.release_m, cfg.release_speaking_m, cfg.blend_s, cfg.step_s)
 
 
 def build_stabilizer(cfg: StabilizerConfig) -> Optional[ArmStabilizer]:

@@ -1,12 +1,13 @@
 """Foot locking (gesture.foot_lock): planted ankles hold still in the world, unplanted legs pass untouched, a lock
-lets go of a step, streaming and causality, and its wiring into the generator and config."""
+lets go of a step (sooner while the agent speaks), streaming and causality, and its wiring into the generator and
+config."""
 
 import numpy as np
 import pytest
 import torch
 
 from core.config import ConfigError
-from core.timing import MOTION_FPS
+from core.timing import MOTION_FPS, STEP_SAMPLES
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.config import FootLockConfig
 from gesture.foot_lock import LEGS, FootLock
@@ -20,6 +21,7 @@ ANKLES = [ankle for _, _, ankle in LEGS]
 LEG_JOINTS = [j for leg in LEGS for j in leg]
 BLEND_FRAMES = int(0.2 * MOTION_FPS)  # a landing (blend_s)
 STEP_FRAMES = int(np.ceil(0.5 * MOTION_FPS))  # a step back to the decoded leg (step_s)
+SPEECH = (0.1 * np.sin(np.arange(STEP_SAMPLES) * 0.05)).astype(np.float32)  # one step of loud agent audio
 
 
 def _sliding_stance(frames: int, hip_swing_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -35,8 +37,8 @@ def _sliding_stance(frames: int, hip_swing_rad: float = 0.0) -> tuple[np.ndarray
     return poses, trans
 
 
-def _stepped(lock: FootLock, poses, trans, contacts) -> np.ndarray:
-    return np.concatenate([lock.step(poses[i:i + 2], trans[i:i + 2], contacts[i:i + 2])
+def _stepped(lock: FootLock, poses, trans, contacts, agent_pcm=None) -> np.ndarray:
+    return np.concatenate([lock.step(poses[i:i + 2], trans[i:i + 2], contacts[i:i + 2], agent_pcm)
                            for i in range(0, len(poses), 2)])
 
 
@@ -77,6 +79,23 @@ def test_a_step_lets_go_of_the_lock():
     assert np.linalg.norm(locked[-1] - decoded[-1]) < np.linalg.norm(locked[-1] - decoded[0])  # it followed
 
 
+def test_the_lock_lets_go_sooner_while_the_agent_speaks():
+    poses, trans = _sliding_stance(50, hip_swing_rad=1.0)
+    contacts = np.ones((50, 4), np.float32)
+    decoded = _ankles(poses, trans)[:, 0]
+
+    def let_go_at_m(agent_pcm) -> float:
+        """How far the decoded left ankle had slid when the lock, landed, first moved it off its anchor."""
+        locked = _ankles(_stepped(FootLock(SKELETON, MOTION_FPS, release_m=0.25, release_speaking_m=0.1), poses,
+                                  trans, contacts, agent_pcm), trans)[BLEND_FRAMES:, 0]
+        frame = BLEND_FRAMES + int(np.argmax(np.linalg.norm(locked - decoded[0], axis=-1) > 1e-3))
+        return float(np.linalg.norm(decoded[frame] - decoded[0]))
+
+    silent, speaking = let_go_at_m(None), let_go_at_m(SPEECH)
+    assert 0.25 <= silent < 0.3
+    assert 0.1 <= speaking < 0.2  # the speaking track rises over a few frames: a little past 0.1
+
+
 def test_streaming_is_causal_and_reset_replays():
     poses, trans = _sliding_stance(60, hip_swing_rad=0.6)
     contacts = (np.random.default_rng(0).random((60, 4)) > 0.2).astype(np.float32)
@@ -92,20 +111,20 @@ def test_generator_hands_the_decoded_contacts_to_the_lock():
     calls = []
 
     class Recording(FootLock):
-        def step(self, poses, trans, contacts):
-            calls.append(np.asarray(contacts).shape)
-            return super().step(poses, trans, contacts)
+        def step(self, poses, trans, contacts, agent_pcm=None):
+            calls.append((np.asarray(contacts).shape, agent_pcm is SPEECH))
+            return super().step(poses, trans, contacts, agent_pcm)
 
     conditions = [(5, np.arange(8) % 12)] * 6
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
     locked = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1, foot_lock=Recording(SKELETON, MOTION_FPS))
     others = [j for j in range(55) if j not in LEG_JOINTS]
     for text, audio in conditions:
-        a, b = plain.step(text, audio), locked.step(text, audio)
+        a, b = plain.step(text, audio, SPEECH), locked.step(text, audio, SPEECH)
         np.testing.assert_array_equal(a.tokens, b.tokens)
         np.testing.assert_array_equal(a.trans, b.trans)
         np.testing.assert_array_equal(a.poses[:, others], b.poses[:, others])
-    assert calls == [(2, 4)] * len(conditions)
+    assert calls == [((2, 4), True)] * len(conditions)  # the contacts and the agent's audio
 
 
 def test_bad_inputs_and_options_give_clear_errors():
@@ -113,6 +132,8 @@ def test_bad_inputs_and_options_give_clear_errors():
         FootLock(SKELETON, MOTION_FPS).step(np.zeros((2, 55, 3)), np.zeros((2, 3)), np.zeros((2, 2)))
     with pytest.raises(ConfigError, match="gesture.foot_lock.release_m: must be > 0"):
         FootLockConfig(release_m=0.0)
+    with pytest.raises(ConfigError, match="gesture.foot_lock.release_speaking_m: must be > 0"):
+        FootLockConfig(release_speaking_m=-0.1)
     with pytest.raises(ConfigError, match="gesture.foot_lock.blend_s: must be > 0"):
         FootLockConfig(blend_s=-1.0)
     with pytest.raises(ConfigError, match="gesture.foot_lock.step_s: must be > 0"):
