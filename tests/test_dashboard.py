@@ -281,6 +281,33 @@ def test_agent_audio_reaches_only_pages_that_asked_for_it():
     asyncio.run(scenario())
 
 
+def test_the_last_event_reaches_a_page_before_the_frames_it_was_behind_on():
+    """At the end of a run a page still behind on frames gets the run's last state first; it used to be closed
+    after a fixed 0.1 s, and on a loaded machine the page kept showing the run as running."""
+    last = {"type": "run", "phase": "stopped"}
+
+    async def scenario():
+        hub = Hub(list, print)
+        runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
+        try:
+            async with aiohttp.ClientSession() as http:
+                async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
+                    await _until(lambda: hub.pages)
+                    for step in range(3):
+                        hub.broadcast_frame(pack_binary(BINARY_FRAME, step, 0, b"\xff\xd8" * 100_000))
+                    await hub.send_last(last)
+                    assert all(page.flushed for page in hub.pages)
+                    await hub.close_pages()
+                    received = []
+                    while (msg := await ws.receive()).type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                        received.append(msg.data)
+                    return received
+        finally:
+            await runner.cleanup()
+
+    assert asyncio.run(scenario()) == [json.dumps(last, separators=(",", ":"))]
+
+
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make a certificate")
 def test_https_with_a_certificate(tmp_path):
     cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"

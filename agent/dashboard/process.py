@@ -175,8 +175,7 @@ async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
                 next_beat = now + launch.app.bus.heartbeat_s
             await asyncio.sleep(POLL_S)
         bridge.poll()
-        bridge.hub.broadcast(bridge.run_state.event())
-        await asyncio.sleep(0.1)  # let the pages receive the last events
+        await bridge.hub.send_last(bridge.run_state.event())
     finally:
         await bridge.hub.close_pages()
         await runner.cleanup()

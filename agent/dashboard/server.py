@@ -15,6 +15,7 @@ import collections
 import json
 import logging
 import ssl
+import time
 from pathlib import Path
 from typing import Callable, Iterable, Optional
 from urllib.parse import urlsplit
@@ -43,6 +44,7 @@ class Page:
         self.wants_audio = False
         self.skipped_frames = 0
         self.wake = asyncio.Event()
+        self.sending = False  # a batch of messages is on its way out
 
     def push_event(self, text: str) -> None:
         if len(self.events) >= MAX_PENDING_EVENTS:
@@ -67,12 +69,20 @@ class Page:
         while not self.ws.closed:
             await self.wake.wait()
             self.wake.clear()
-            while self.events:
-                await self.ws.send_str(self.events.popleft())
-            while self.audio:
-                await self.ws.send_bytes(self.audio.popleft())
-            while self.frames:
-                await self.ws.send_bytes(self.frames.popleft())
+            self.sending = True
+            try:
+                while self.events:
+                    await self.ws.send_str(self.events.popleft())
+                while self.audio:
+                    await self.ws.send_bytes(self.audio.popleft())
+                while self.frames:
+                    await self.ws.send_bytes(self.frames.popleft())
+            finally:
+                self.sending = False
+
+    @property
+    def flushed(self) -> bool:
+        return self.ws.closed or not (self.events or self.sending)
 
 
 class Hub:
@@ -100,6 +110,18 @@ class Hub:
     def broadcast_audio(self, data: bytes) -> None:
         for page in self.pages:
             page.push_audio(data)
+
+    async def send_last(self, event: Event, timeout_s: float = 2.0) -> None:
+        """The run is over: every page drops the frames and audio it has not been sent yet and gets `event` after
+        its other pending events; returns when all have them (a page that reads slowly, e.g. on a loaded machine, is
+        waited for up to `timeout_s`)."""
+        for page in self.pages:
+            page.frames.clear()
+            page.audio.clear()
+        self.broadcast(event)
+        deadline = time.monotonic() + timeout_s
+        while not all(page.flushed for page in self.pages) and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
 
     async def close_pages(self, timeout_s: float = 1.0) -> None:
         """Close every page's WebSocket (they would otherwise hold the server's shutdown)."""
