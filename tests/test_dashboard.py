@@ -492,10 +492,12 @@ def _drive_page(proc: subprocess.Popen, report: Path, page_script, finish_timeou
 
 
 async def _press_stop(page) -> None:
-    """Stop the run from the page, which stays open until the run shows it stopped: a page closed at once can take
-    the command with it before its WebSocket sends it (the run then never stops)."""
+    """Stop the run from the page, which stays open until the run shows it stopped or the dashboard has closed its
+    connection (the run is over): a page closed at once can take the command with it before its WebSocket sends
+    it (the run then never stops)."""
     await page.evaluate("document.getElementById('stop').click()")
-    await page.wait_for("window.dashboard.phase === 'stopped'", timeout_s=30)
+    await page.wait_for("window.dashboard.phase === 'stopped' || "
+                        "document.getElementById('connection').textContent === 'offline'", timeout_s=30)
 
 
 REAL_CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "speech" / "librivox_0870.wav"
