@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import json
 import shutil
@@ -263,47 +264,49 @@ def test_one_page_at_a_time_holds_the_microphone_and_only_its_audio_is_relayed()
     assert relayed == [b"\x02\x00\x03\x00"]
 
 
+@contextlib.asynccontextmanager
+async def _connected_page(hub: Hub):
+    """A page's WebSocket to a dashboard server of `hub` on a free port."""
+    runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
+    try:
+        async with aiohttp.ClientSession() as http:
+            async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
+                yield ws
+    finally:
+        await runner.cleanup()
+
+
 def test_agent_audio_reaches_only_pages_that_asked_for_it():
     async def scenario():
         hub = Hub(list, print)
-        runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
-        try:
-            async with aiohttp.ClientSession() as http:
-                async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
-                    hub.broadcast_audio(b"before")
-                    await ws.send_str(json.dumps({"type": "audio", "enabled": True}))
-                    await _until(lambda: all(p.wants_audio for p in hub.pages))
-                    hub.broadcast_audio(b"after")
-                    assert (await ws.receive()).data == b"after"
-        finally:
-            await runner.cleanup()
+        async with _connected_page(hub) as ws:
+            hub.broadcast_audio(b"before")
+            await ws.send_str(json.dumps({"type": "audio", "enabled": True}))
+            await _until(lambda: all(p.wants_audio for p in hub.pages))
+            hub.broadcast_audio(b"after")
+            assert (await ws.receive()).data == b"after"
 
     asyncio.run(scenario())
 
 
 def test_the_last_event_reaches_a_page_before_the_frames_it_was_behind_on():
-    """At the end of a run a page still behind on frames gets the run's last state first; it used to be closed
-    after a fixed 0.1 s, and on a loaded machine the page kept showing the run as running."""
+    """At the end of a run a page still behind on frames gets the run's last state, and only that, before it is
+    closed (it used to be closed after a fixed 0.1 s, which a slow page's backlog can outlast)."""
     last = {"type": "run", "phase": "stopped"}
 
     async def scenario():
         hub = Hub(list, print)
-        runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
-        try:
-            async with aiohttp.ClientSession() as http:
-                async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
-                    await _until(lambda: hub.pages)
-                    for step in range(3):
-                        hub.broadcast_frame(pack_binary(BINARY_FRAME, step, 0, b"\xff\xd8" * 100_000))
-                    await hub.send_last(last)
-                    assert all(page.flushed for page in hub.pages)
-                    await hub.close_pages()
-                    received = []
-                    while (msg := await ws.receive()).type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
-                        received.append(msg.data)
-                    return received
-        finally:
-            await runner.cleanup()
+        async with _connected_page(hub) as ws:
+            await _until(lambda: hub.pages)
+            for step in range(3):
+                hub.broadcast_frame(pack_binary(BINARY_FRAME, step, 0, b"\xff\xd8" * 100_000))
+            await hub.send_last(last)
+            assert all(page.flushed for page in hub.pages)
+            await hub.close_pages()
+            received = []
+            while (msg := await ws.receive()).type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                received.append(msg.data)
+            return received
 
     assert asyncio.run(scenario()) == [json.dumps(last, separators=(",", ":"))]
 
