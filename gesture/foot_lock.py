@@ -22,7 +22,7 @@ p90 of 0.11 m/s (0.12); a release of 0.1 m stepped 21.6 times a minute, and a st
 left the p90 at 0.03 m/s. But with one release distance the agent stepped about as often listening as speaking
 (10.7 and 11.4 times a minute, sampling seed 0), where the ground truth, whose holds between bouts of steps are
 longer while it listens, steps 10.5 and 13.2 times; releasing at 0.18 m while speaking gives 10.2 and 13.7
-(0.15 m: 9.4 and 15.6, the steps that a silent stretch had prepared coming at the first words), planted 0.86,
+(0.165 m: 9.4 and 15.6, the steps that a silent stretch had prepared coming at the first words), planted 0.86,
 p90 0.13 m/s (ground truth 0.125).
 """
 
