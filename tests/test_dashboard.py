@@ -11,6 +11,7 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -420,6 +421,20 @@ PAGE_STATE = """(() => {
           counters: document.getElementById('counters').innerText,
           phaseText: document.getElementById('phase').textContent};
 })()"""
+
+
+@pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`)")
+def test_the_browser_leaves_no_temporary_files(tmp_path, monkeypatch):
+    """Chromium's profile and its own temporary directories (singleton socket) go when the page closes."""
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+
+    async def show() -> str:
+        async with HeadlessChromium("data:text/html,<p id=p>shown</p>") as page:
+            return await page.wait_for("document.getElementById('p')?.textContent", timeout_s=30)
+
+    assert asyncio.run(show()) == "shown"
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`; "

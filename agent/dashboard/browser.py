@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import base64
+import contextlib
 import itertools
 import os
 import shutil
@@ -31,6 +32,7 @@ FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage
          "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars",
          "--autoplay-policy=no-user-gesture-required", "--remote-debugging-port=0")
 START_TIMEOUT_S = 30.0
+CLOSE_TIMEOUT_S = 5.0
 
 
 class BrowserError(RuntimeError):
@@ -75,15 +77,25 @@ class HeadlessChromium:
 
     async def __aexit__(self, *exc) -> None:
         if getattr(self, "ws", None) is not None:
+            await self._close_browser()
             await self.ws.close()
         await self.session.close()
-        self.process.terminate()
+        if self.process.poll() is None:
+            self.process.terminate()
         try:
             self.process.wait(5)
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait()
         shutil.rmtree(self.profile, ignore_errors=True)
+
+    async def _close_browser(self) -> None:
+        """Ask Chromium to quit: unlike SIGTERM, it then removes its temporary directory (singleton socket)."""
+        # TypeError: aiohttp's answer to a socket closed while a reply was awaited
+        with contextlib.suppress(BrowserError, asyncio.TimeoutError, aiohttp.ClientError, ConnectionError, TypeError):
+            await asyncio.wait_for(self.call("Browser.close"), CLOSE_TIMEOUT_S)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            await asyncio.to_thread(self.process.wait, CLOSE_TIMEOUT_S)
 
     async def _devtools_port(self) -> int:
         marker = self.profile / "DevToolsActivePort"
