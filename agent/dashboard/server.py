@@ -122,6 +122,9 @@ class Hub:
         deadline = time.monotonic() + timeout_s
         while not all(page.flushed for page in self.pages) and time.monotonic() < deadline:
             await asyncio.sleep(0.01)
+        behind = sum(not page.flushed for page in self.pages)
+        log.info("last event %s sent to %d page(s)%s", event.get("phase", event.get("type")),
+                 len(self.pages) - behind, f"; {behind} still behind after {timeout_s:g} s" if behind else "")
 
     async def close_pages(self, timeout_s: float = 1.0) -> None:
         """Close every page's WebSocket (they would otherwise hold the server's shutdown)."""
@@ -142,6 +145,7 @@ class Hub:
         for event in self.snapshot():
             page.push_event(json.dumps(event, separators=(",", ":")))
         self.pages.add(page)
+        log.info("page connected (%d open)", len(self.pages))
         sender = asyncio.ensure_future(page.send_pending())
         try:
             async for msg in ws:
@@ -155,6 +159,7 @@ class Hub:
             self.pages.discard(page)
             self.skipped_frames_closed += page.skipped_frames
             sender.cancel()
+            log.info("page disconnected (close code %s, %d open)", ws.close_code, len(self.pages))
         return ws
 
     def _on_page_message(self, page: Page, text: str) -> None:
