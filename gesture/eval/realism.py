@@ -2,6 +2,7 @@
 
     python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
         [--config YAML] [--set KEY=VALUE ...]   (passed to launch.py, e.g. a candidate agent or other checkpoints)
+        [--clip PATH/TAKE [--wav WAV]]   (another real take: TAKE.npz, and its speech TAKE.wav or WAV)
 
 The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spoken by the ``playback`` backend
 (``launch.py --speak WAV --headless --seed N --report DIR``, which writes the agent's motion to DIR/motion.npz;
@@ -557,11 +558,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--codecs", help="the agent's codecs, for the real clip's reconstruction (the ceiling; default: "
                                     "the config's gesture.codec_checkpoints)")
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip, without extension (.npz and .wav)")
+    p.add_argument("--wav", help="the clip's speech when it is not CLIP.wav (e.g. BEAT2's wave16k/<take>.wav)")
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     args = p.parse_args(argv)
     out = Path(args.out) if args.out else ROOT / "runs" / f"realism_seed{args.seed}"
-    real_npz, wav = Path(args.clip + ".npz"), Path(args.clip + ".wav")
+    real_npz, wav = Path(args.clip + ".npz"), Path(args.wav or args.clip + ".wav")
     try:
         given = tuple(Path(x) for x in (args.motion, args.synthetic) if x)
         for path in (real_npz, wav, MEAN_SPEED_NPY) + given:
