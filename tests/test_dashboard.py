@@ -424,17 +424,21 @@ PAGE_STATE = """(() => {
 
 
 @pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`)")
-def test_the_browser_leaves_no_temporary_files(tmp_path, monkeypatch):
+def test_the_browser_leaves_no_temporary_files(monkeypatch):
     """Chromium's profile and its own temporary directories (singleton socket) go when the page closes."""
-    monkeypatch.setenv("TMPDIR", str(tmp_path))
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    temp = Path(tempfile.mkdtemp(prefix="chr-", dir="/tmp"))  # short: Chromium's socket path must fit 108 bytes
+    monkeypatch.setenv("TMPDIR", str(temp))
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
 
     async def show() -> str:
         async with HeadlessChromium("data:text/html,<p id=p>shown</p>") as page:
             return await page.wait_for("document.getElementById('p')?.textContent", timeout_s=30)
 
-    assert asyncio.run(show()) == "shown"
-    assert list(tmp_path.iterdir()) == []
+    try:
+        assert asyncio.run(show()) == "shown"
+        assert list(temp.iterdir()) == []
+    finally:
+        shutil.rmtree(temp, ignore_errors=True)
 
 
 @pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`; "
