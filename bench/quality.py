@@ -10,9 +10,10 @@ against the real clip and the share of quick motion per joint group. `--beat2` m
 release directory instead (gesture.data.beat2's layouts; those of `--speaker` in `--split` that have speech, or
 `--takes`), each take against its own real motion, and adds the median of every goal ratio over takes and seeds:
 the held-out measurement issue 18 asks for. `--suite` adds the held-out synthetic suite (`python -m
-gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report comes first: the numbers are quality, not time, but
-the agent runs in real time through `launch.py`, and a loaded machine is worth knowing about. `--config` measures
-another agent (an app config such as configs/default.yaml pointing at other checkpoints) in both reports.
+gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report comes first: the numbers are
+quality, not time, but the agent runs in real time through `launch.py`, and a loaded machine is worth knowing about.
+`--config` measures another agent (an app config such as configs/default.yaml pointing at other checkpoints) in
+both reports.
 """
 
 from __future__ import annotations
@@ -108,6 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="with --beat2: the split of train_test_split.csv (default %(default)s)")
     p.add_argument("--takes", nargs="+", default=(), metavar="ID", help="with --beat2: exactly these takes")
     args = p.parse_args(argv)
+    if args.takes and not args.beat2:
+        p.error("--takes: name the BEAT2 directory they are in with --beat2")
     try:
         takes = select_takes(args.beat2, args.speaker, args.split, args.takes) if args.beat2 else [None]
     except DataError as err:

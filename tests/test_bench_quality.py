@@ -60,6 +60,8 @@ def test_the_held_out_takes_of_a_speaker_are_chosen_and_missing_ones_named(tmp_p
     with pytest.raises(DataError, match="speaker 'kieks' in split 'test'"):
         select_takes(root, "kieks", "test")
     assert quality_main(["--beat2", str(root), "--speaker", "kieks", "--out", str(tmp_path / "out")]) == 2
+    with pytest.raises(SystemExit, match="2"):
+        quality_main(["--takes", "2_scott_0_2_2"])
 
 
 def test_pooled_goals_count_the_runs_and_take_medians():
