@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import aiohttp
+from aiohttp import WSCloseCode
 import numpy as np
 import pytest
 import soundfile as sf
@@ -310,6 +311,38 @@ def test_the_last_event_reaches_a_page_before_the_frames_it_was_behind_on():
             return received
 
     assert asyncio.run(scenario()) == [json.dumps(last, separators=(",", ":"))]
+
+
+def test_a_page_still_sending_gets_the_last_event_and_a_clean_close():
+    """A page streaming its microphone when the run ends: the dashboard reads it to the end of the close handshake
+    before the server shuts down, so the page gets the last state and close code 1000. Before, the connection ended
+    while the page's audio still came in; the kernel reset it and the page lost the state it had not read (1006)."""
+    last = {"type": "run", "phase": "stopped"}
+
+    async def scenario():
+        hub = Hub(list, print)
+        runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
+
+        async def end_of_run() -> None:
+            await _until(lambda: hub.pages)
+            await hub.send_last(last)
+            await hub.close_pages()
+            await runner.cleanup()
+
+        async with aiohttp.ClientSession() as http:
+            async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
+                ending = asyncio.ensure_future(end_of_run())
+                for _ in range(60):  # 0.3 s of audio blocks, reading nothing meanwhile (a busy page)
+                    await ws.send_bytes(pack_binary(BINARY_MIC, 0, 0, bytes(4000)))
+                    await asyncio.sleep(0.005)
+                received = []
+                while (msg := await ws.receive()).type == aiohttp.WSMsgType.TEXT:
+                    received.append(msg.data)
+                await ending
+                return received, ws.close_code
+
+    received, code = asyncio.run(scenario())
+    assert received == [json.dumps(last, separators=(",", ":"))] and code == WSCloseCode.GOING_AWAY
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make a certificate")

@@ -45,6 +45,8 @@ class Page:
         self.skipped_frames = 0
         self.wake = asyncio.Event()
         self.sending = False  # a batch of messages is on its way out
+        self.reader: Optional[asyncio.Future] = None  # reads the page's messages until it closes or the run ends
+        self.finished = asyncio.Event()  # its connection is over
 
     def push_event(self, text: str) -> None:
         if len(self.events) >= MAX_PENDING_EVENTS:
@@ -127,10 +129,17 @@ class Hub:
                  len(self.pages) - behind, f"; {behind} still behind after {timeout_s:g} s" if behind else "")
 
     async def close_pages(self, timeout_s: float = 1.0) -> None:
-        """Close every page's WebSocket (they would otherwise hold the server's shutdown)."""
-        closing = [page.ws.close(code=WSCloseCode.GOING_AWAY, message=b"the run ended") for page in self.pages]
-        if closing:
-            await asyncio.wait(map(asyncio.ensure_future, closing), timeout=timeout_s)
+        """Close every page's WebSocket (they would otherwise hold the server's shutdown): each page's handler stops
+        reading and closes it, waiting up to `timeout_s` for the page's answer.
+
+        aiohttp's `close()` from another task than the reading one ends the connection without that answer; the
+        page's messages that still arrive (its microphone) are then never read, the kernel resets the connection,
+        and the page loses what it had not read yet, such as the last run state."""
+        pages = list(self.pages)
+        for page in pages:
+            page.reader.cancel()
+        if pages:
+            await asyncio.wait([asyncio.ensure_future(page.finished.wait()) for page in pages], timeout=timeout_s)
 
     def counters(self) -> dict[str, int]:
         return {"pages": len(self.pages),
@@ -147,20 +156,28 @@ class Hub:
         self.pages.add(page)
         log.info("page connected (%d open)", len(self.pages))
         sender = asyncio.ensure_future(page.send_pending())
+        page.reader = asyncio.ensure_future(self._read(page))
         try:
-            async for msg in ws:
-                if msg.type == WSMsgType.TEXT:
-                    self._on_page_message(page, msg.data)
-                elif msg.type == WSMsgType.BINARY:
-                    self._on_page_audio(page, msg.data)
+            await asyncio.wait([page.reader])
+            if not ws.closed:  # close_pages stopped the reading: the run is over
+                await ws.close(code=WSCloseCode.GOING_AWAY, message=b"the run ended")
         finally:
+            page.reader.cancel()
             if self.mic_page is page:
                 self.mic_page = None
             self.pages.discard(page)
             self.skipped_frames_closed += page.skipped_frames
             sender.cancel()
+            page.finished.set()
             log.info("page disconnected (close code %s, %d open)", ws.close_code, len(self.pages))
         return ws
+
+    async def _read(self, page: Page) -> None:
+        async for msg in page.ws:
+            if msg.type == WSMsgType.TEXT:
+                self._on_page_message(page, msg.data)
+            elif msg.type == WSMsgType.BINARY:
+                self._on_page_audio(page, msg.data)
 
     def _on_page_message(self, page: Page, text: str) -> None:
         try:
