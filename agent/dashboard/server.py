@@ -159,8 +159,10 @@ class Hub:
         page.reader = asyncio.ensure_future(self._read(page))
         try:
             await asyncio.wait([page.reader])
-            if not ws.closed:  # close_pages stopped the reading: the run is over
+            if page.reader.cancelled():  # close_pages stopped the reading: the run is over
                 await ws.close(code=WSCloseCode.GOING_AWAY, message=b"the run ended")
+            else:
+                page.reader.result()  # the page closed; a failure in handling its messages is raised here
         finally:
             page.reader.cancel()
             if self.mic_page is page:
