@@ -10,6 +10,7 @@ from typing import Literal, Optional
 
 from core.config import ConfigError
 from core.spec import ConditionSpec
+from core.timing import MOTION_FPS
 from gesture.synth.config import LAYERED_MICRO_JOINTS
 
 
@@ -37,12 +38,20 @@ class MicroMotionConfig:
     enabled: bool = False
     joints: tuple[int, ...] = LAYERED_MICRO_JOINTS  # spine, neck, collars, head, wrists: the training data's layer
     scale: float = 1.0  # times every fitted standard deviation
+    # The neck's and head's slow drift (gesture.micro_motion.HeadDrift; 0: none): its std per axis and its cutoff
+    head_drift_rad: float = 0.0
+    head_drift_hz: float = 0.17
 
     def __post_init__(self) -> None:
         if not self.joints:
             raise ConfigError("gesture.micro_motion.joints: must name at least one joint")
         if self.scale < 0:
             raise ConfigError(f"gesture.micro_motion.scale: must be >= 0, got {self.scale}")
+        if self.head_drift_rad < 0:
+            raise ConfigError(f"gesture.micro_motion.head_drift_rad: must be >= 0, got {self.head_drift_rad}")
+        if not 0 < self.head_drift_hz < MOTION_FPS / 2:
+            raise ConfigError(f"gesture.micro_motion.head_drift_hz: must be in (0, {MOTION_FPS / 2}), "
+                              f"got {self.head_drift_hz}")
 
 
 @dataclass(frozen=True)

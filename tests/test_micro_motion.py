@@ -8,12 +8,12 @@ from scipy.signal import sosfilt
 
 from core.config import ConfigError
 from core.timing import MOTION_FPS
-from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle
+from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle_np
 from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.micro_motion import (SPEAKING_RMS, CausalSmoothNoise, LowpassNoise, VoiceEnvelope, calibrated_micro_motion,
-                                  frame_rms)
+from gesture.micro_motion import (HEAD_DRIFT_JOINTS, SPEAKING_RMS, CausalSmoothNoise, HeadDrift, LowpassNoise,
+                                  VoiceEnvelope, calibrated_micro_motion, frame_rms)
 from gesture.process import build_micro_motion
 from gesture.synth import agent
 from gesture.synth.agent import MICRO_ENVELOPE_GAIN, micro_motion
@@ -168,3 +168,49 @@ def test_wrists_hold_still_as_often_as_the_datas(monkeypatch):
 def _still_fraction(offsets: np.ndarray) -> float:
     """(T, J, 3) axis-angle offsets -> the share of frame steps slower than 0.2 rad/s (approximately)."""
     return float((np.linalg.norm(np.diff(offsets, axis=0), axis=-1) * MOTION_FPS < 0.2).mean())
+
+
+def _drifting(seed: int = 0, drift_seed: int = 0):
+    return calibrated_micro_motion(JOINTS, MOTION_FPS, seed, head_drift=HeadDrift(0.025, 0.17, MOTION_FPS, drift_seed))
+
+
+def test_head_drift_streams_in_steps_as_in_one_call_and_reset_replays():
+    poses = _rest_poses(40)
+    pcm = np.concatenate([STEP_PCM * (k % 3) for k in range(20)])
+    layer = _drifting()
+    whole = layer.step(poses, pcm)
+    layer.reset()
+    steps = np.concatenate([layer.step(poses[i:i + 2], pcm[960 * i:960 * (i + 2)]) for i in range(0, 40, 2)])
+    np.testing.assert_array_equal(whole, steps)
+
+
+def test_head_drift_moves_only_the_neck_and_head_and_leaves_the_other_noise_as_it_was():
+    poses = _rest_poses(4000)
+    plain = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses)
+    drifting = _moved(_drifting(), poses)
+    others = [j for j in range(55) if j not in HEAD_DRIFT_JOINTS]
+    np.testing.assert_array_equal(drifting[:, others], plain[:, others])
+    assert not np.allclose(drifting[:, list(HEAD_DRIFT_JOINTS)], plain[:, list(HEAD_DRIFT_JOINTS)], atol=1e-3)
+    assert not np.array_equal(_moved(_drifting(drift_seed=1), poses), drifting)  # seeded per session
+
+
+def test_head_drift_has_its_size_and_is_slow():
+    local = np.broadcast_to(np.eye(3), (25 * 600, 55, 3, 3))  # ten minutes at rest
+    drifted = HeadDrift(0.025, 0.17, MOTION_FPS, seed=0).step(local)
+    angles = matrix_to_axis_angle_np(drifted[:, list(HEAD_DRIFT_JOINTS)])  # (T, 2, 3)
+    np.testing.assert_allclose(angles.std(0), 0.025, rtol=0.15)
+    speed = np.linalg.norm(np.diff(angles, axis=0), axis=-1) * MOTION_FPS  # (T-1, 2) rad/s
+    assert 0.03 < np.median(speed) < 0.05  # the data's planned head motion: 0.04 rad/s
+    np.testing.assert_array_equal(drifted[:, 18], local[:, 18])
+    with pytest.raises(ValueError, match="head drift: need std_rad > 0"):
+        HeadDrift(0.0, 0.17, MOTION_FPS)
+
+
+def test_the_config_builds_the_head_drift_and_names_its_options():
+    assert build_micro_motion(MicroMotionConfig(enabled=True), 0).head_drift is None
+    layer = build_micro_motion(MicroMotionConfig(enabled=True, head_drift_rad=0.025, head_drift_hz=0.17), 0)
+    assert layer.head_drift.std_rad == 0.025 and set(HEAD_DRIFT_JOINTS) <= set(layer.changed)
+    with pytest.raises(ConfigError, match="gesture.micro_motion.head_drift_rad: must be >= 0"):
+        MicroMotionConfig(head_drift_rad=-0.1)
+    with pytest.raises(ConfigError, match=r"gesture.micro_motion.head_drift_hz: must be in \(0, 12.5\)"):
+        MicroMotionConfig(head_drift_hz=13.0)
