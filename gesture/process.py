@@ -135,8 +135,8 @@ def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotio
     """The `gesture.micro_motion` layer, or None when it is off."""
     if not cfg.enabled:
         return None
+    drift = HeadDrift(cfg.head_drift_rad, cfg.head_drift_hz, MOTION_FPS, seed) if cfg.head_drift_rad > 0 else None
     try:
-        drift = HeadDrift(cfg.head_drift_rad, cfg.head_drift_hz, MOTION_FPS, seed) if cfg.head_drift_rad > 0 else None
         return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, drift)
     except ValueError as error:
         raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
