@@ -41,6 +41,8 @@ class MicroMotionConfig:
     # The neck's and head's slow drift (gesture.micro_motion.HeadDrift; 0: none): its std per axis and its cutoff
     head_drift_rad: float = 0.0
     head_drift_hz: float = 0.17
+    # The collars' noise cutoff (gesture.micro_motion.COLLARS; 0: the fitted one, about 3 Hz)
+    collar_cutoff_hz: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.joints:
@@ -52,6 +54,9 @@ class MicroMotionConfig:
         if not 0 < self.head_drift_hz < MOTION_FPS / 2:
             raise ConfigError(f"gesture.micro_motion.head_drift_hz: must be in (0, {MOTION_FPS / 2}), "
                               f"got {self.head_drift_hz}")
+        if not 0 <= self.collar_cutoff_hz < MOTION_FPS / 2:
+            raise ConfigError(f"gesture.micro_motion.collar_cutoff_hz: must be 0 (as fitted) or in (0, "
+                              f"{MOTION_FPS / 2}), got {self.collar_cutoff_hz}")
 
 
 @dataclass(frozen=True)

@@ -137,7 +137,7 @@ def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotio
         return None
     drift = HeadDrift(cfg.head_drift_rad, cfg.head_drift_hz, MOTION_FPS, seed) if cfg.head_drift_rad > 0 else None
     try:
-        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, drift)
+        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, drift, cfg.collar_cutoff_hz)
     except ValueError as error:
         raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
 

@@ -12,7 +12,7 @@ from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle, matrix_t
 from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.micro_motion import (HEAD_DRIFT_JOINTS, SPEAKING_RMS, CausalSmoothNoise, HeadDrift, LowpassNoise,
+from gesture.micro_motion import (COLLARS, HEAD_DRIFT_JOINTS, SPEAKING_RMS, CausalSmoothNoise, HeadDrift, LowpassNoise,
                                   VoiceEnvelope, calibrated_micro_motion, frame_rms)
 from gesture.process import build_micro_motion
 from gesture.synth import agent
@@ -214,3 +214,26 @@ def test_the_config_builds_the_head_drift_and_names_its_options():
         MicroMotionConfig(head_drift_rad=-0.1)
     with pytest.raises(ConfigError, match=r"gesture.micro_motion.head_drift_hz: must be in \(0, 12.5\)"):
         MicroMotionConfig(head_drift_hz=13.0)
+
+
+def test_slower_collars_change_only_the_collars_and_keep_their_spread():
+    poses = _rest_poses(25 * 300)
+    fitted = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses)
+    slower = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0, collar_cutoff_hz=1.5), poses)
+    others = [j for j in range(55) if j not in COLLARS]
+    np.testing.assert_array_equal(slower[:, others], fitted[:, others])  # the same random draws
+    collars = list(COLLARS)
+    np.testing.assert_allclose(slower[:, collars].std(0), fitted[:, collars].std(0), rtol=0.25)
+    speed = [np.median(np.linalg.norm(np.diff(m[:, collars], axis=0), axis=-1)) for m in (fitted, slower)]
+    assert speed[1] < 0.7 * speed[0]  # about half the cutoff: about half the speed
+
+
+def test_the_config_sets_the_collars_cutoff_and_names_the_option():
+    layer = build_micro_motion(MicroMotionConfig(enabled=True, collar_cutoff_hz=1.5), 0)
+    fitted = build_micro_motion(MicroMotionConfig(enabled=True), 0)
+    slow = 3 * len(layer.joints)  # the slow noise's channels, 3 per joint, come first
+    changed = np.flatnonzero(np.any(layer.noise.b[:slow] != fitted.noise.b[:slow], axis=1)) // 3
+    assert [layer.joints[k] for k in np.unique(changed)] == list(COLLARS)
+    np.testing.assert_array_equal(layer.noise.b[slow:], fitted.noise.b[slow:])  # their quick noise stays
+    with pytest.raises(ConfigError, match=r"gesture.micro_motion.collar_cutoff_hz: must be 0 \(as fitted\)"):
+        MicroMotionConfig(collar_cutoff_hz=-1.0)

@@ -68,6 +68,19 @@ def test_strokes_are_counted_one_per_movement():
     assert R.stroke_times_s(wrist * 0.1).size == 0  # 1.5 cm: micro-motion, not a stroke
 
 
+def test_hands_quick_share_tells_a_shaking_path_from_a_smooth_one():
+    t = np.arange(40 * FPS) / FPS
+    wrists = np.zeros((len(t), 2, 3))
+    wrists[:, 0, 0] = 0.2 * np.sin(2 * np.pi * 0.5 * t)  # one hand sweeps slowly ...
+    wrists[:, 1, 1] = 0.2 * np.sin(2 * np.pi * 0.5 * t)  # ... the other too, with a tremor of the same speed
+    wrists[:, 1, 2] = 0.025 * np.sin(2 * np.pi * 4.0 * t)
+    assert R.position_fast_share(wrists) == pytest.approx(1 / 3, abs=0.02)  # 1 of 3 equal powers is quick
+    assert R.position_fast_share(wrists[:, :1]) < 0.01
+    joints = np.zeros((len(t), 55, 3))
+    joints[:, list(R.WRISTS)] = wrists
+    assert R.hand_stats(joints)["quick_share"] == pytest.approx(1 / 3, abs=0.02)
+
+
 def test_feet_are_planted_until_they_step():
     n = 10 * FPS
     poses, trans = np.zeros((n, 55, 3)), np.zeros((n, 3))

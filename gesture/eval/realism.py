@@ -24,7 +24,9 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - L1div, BeatAlign and the kinetic FGD by the reference protocol (gesture.eval.scores.evaluate_motion);
 - gesture strokes per minute (peaks of wrist speed in the body frame, ``STROKE_*``) and the distribution of hand
   height (wrist above the pelvis in the body frame: percentiles, given as differences from the real clip's in
-  metres, and the overlap of the two histograms, 1 = the same distribution);
+  metres, and the overlap of the two histograms, 1 = the same distribution), and the share of the wrists' velocity
+  power in the body frame at ``FAST_BAND_HZ`` (``hands.quick_share``: how smoothly the hands travel; a speaker's
+  joints move quickly together so that his hands' paths stay smooth, which noise drawn per joint does not);
 - the feet: the fraction of frames an ankle is planted (moving over the floor slower than ``PLANTED_MPS``), the
   90th percentile of its speed, its steps per minute (``STEP_*``), and how far the pelvis travels over the floor in
   a second (median; the real speaker paces);
@@ -237,13 +239,22 @@ def stroke_times_s(wrist: np.ndarray, fps: float = MOTION_FPS) -> np.ndarray:
     return peaks / fps
 
 
+def position_fast_share(points: np.ndarray, fps: float = MOTION_FPS) -> float:
+    """(T, K, 3) positions -> the share of their velocity's power (summed over points and axes) within
+    ``FAST_BAND_HZ``."""
+    velocity = np.diff(points, axis=0) * fps  # (T-1, K, 3) m/s
+    power = np.square(np.abs(np.fft.rfft(velocity - velocity.mean(0), axis=0))).sum((1, 2))  # (F,)
+    return float(fast_share(np.fft.rfftfreq(len(velocity), 1.0 / fps), power))
+
+
 def hand_stats(joints: np.ndarray, fps: float = MOTION_FPS) -> dict:
     minutes = len(joints) / fps / 60.0
     strokes = sum(len(stroke_times_s(joints[:, w], fps)) for w in WRISTS)
     height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS:PELVIS + 1, 1]).reshape(-1)  # (2T,) metres
     p10, p50, p90 = np.percentile(height, (10, 50, 90))
     return {"strokes_per_minute": strokes / minutes, "hand_height_p10_m": float(p10),
-            "hand_height_median_m": float(p50), "hand_height_p90_m": float(p90)}
+            "hand_height_median_m": float(p50), "hand_height_p90_m": float(p90),
+            "quick_share": position_fast_share(joints[:, list(WRISTS)], fps)}
 
 
 def step_count(ankle_xz: np.ndarray, fps: float = MOTION_FPS) -> int:
