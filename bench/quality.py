@@ -6,10 +6,10 @@
 For each seed it runs the realism report on the real BEAT2 clip (`python -m gesture.realism --seed N --no-video`,
 about 5 minutes a minute of speech) and summarises issue 18's goals for the agent: which hold
 (gesture.eval.realism.goal_check), the ratios to the real speaker that fall outside 0.67-1.5, L1div, BeatAlign
-against the real clip and the share of quick motion per joint group. `--beat2` measures the takes of a BEAT2
-release directory instead (gesture.data.beat2's layouts; those of `--speaker` in `--split` that have speech, or
-`--takes`), each take against its own real motion, and adds the median of every goal ratio over takes and seeds:
-the held-out measurement issue 18 asks for. `--suite` adds the held-out synthetic suite (`python -m
+against the real clip and the share of quick motion per joint group and of the hands' paths. `--beat2` measures the
+takes of a BEAT2 release directory instead (gesture.data.beat2's layouts; those of `--speaker` in `--split` that have
+speech, or `--takes`), each take against its own real motion, and adds the median of every goal ratio over takes and
+seeds: the held-out measurement issue 18 asks for. `--suite` adds the held-out synthetic suite (`python -m
 gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report comes first: the numbers are
 quality, not time, but the agent runs in real time through `launch.py`, and a loaded machine is worth knowing about.
 `--config` measures another agent (an app config such as configs/default.yaml pointing at other checkpoints) in
@@ -49,7 +49,8 @@ def seed_summary(report: dict) -> dict:
                                                      "beat_align_within_0.15")),
             "ratios_outside": outside, "l1div_ratio": round(agent["ratios"]["l1div"], 3),
             "beat_align_minus_real": round(agent["beat_align_minus_real"], 3),
-            "quick_share_ratio": {g: round(v["fast_power_share"], 3) for g, v in agent["ratios"]["spectra"].items()}}
+            "quick_share_ratio": {g: round(v["fast_power_share"], 3) for g, v in agent["ratios"]["spectra"].items()},
+            "hands_quick_share_ratio": round(agent["ratios"]["hands"]["quick_share"], 3)}
 
 
 def run_realism(seed: int, out: Path, config: Path, take: Optional[Take] = None) -> dict:

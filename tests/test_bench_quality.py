@@ -25,6 +25,7 @@ def test_the_summary_of_the_readmes_seed_names_what_misses():
                                   and REPORT["generated"]["goals"]["beat_align_within_0.15"])
     assert summary["l1div_ratio"] == round(REPORT["generated"]["ratios"]["l1div"], 3)
     assert set(summary["quick_share_ratio"]) == set(REPORT["generated"]["ratios"]["spectra"])
+    assert summary["hands_quick_share_ratio"] == round(REPORT["generated"]["ratios"]["hands"]["quick_share"], 3)
 
 
 def test_a_ratio_outside_the_range_is_named_and_fails_the_seed():
