@@ -217,13 +217,13 @@ def test_the_config_builds_the_head_drift_and_names_its_options():
 
 
 def test_slower_collars_change_only_the_collars_and_keep_their_spread():
-    poses = _rest_poses(25 * 300)
+    poses = _rest_poses(25 * 120)
     fitted = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses)
     slower = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0, collar_cutoff_hz=1.5), poses)
     others = [j for j in range(55) if j not in COLLARS]
     np.testing.assert_array_equal(slower[:, others], fitted[:, others])  # the same random draws
     collars = list(COLLARS)
-    np.testing.assert_allclose(slower[:, collars].std(0), fitted[:, collars].std(0), rtol=0.25)
+    np.testing.assert_allclose(slower[:, collars].std(0), fitted[:, collars].std(0), rtol=0.1)
     speed = [np.median(np.linalg.norm(np.diff(m[:, collars], axis=0), axis=-1)) for m in (fitted, slower)]
     assert speed[1] < 0.7 * speed[0]  # about half the cutoff: about half the speed
 
