@@ -27,7 +27,8 @@ slow turns), which is in the gesture layer but which the codecs drop (a linear p
 it the agent's neck and head had 0.71 of the ground truth's pose diversity on validation sessions and 0.74-0.86 of
 the real speaker's on his speech (seeds 0-9), at their speeds.
 
-The collars' noise can be made slower than fitted (`collar_cutoff_hz`): the fit gave them 3 Hz because the data's
+A joint's noise can be made slower than fitted (`calibrated_micro_motion`'s `cutoff_hz`; the config's
+`gesture.micro_motion.collar_cutoff_hz` does it for the `COLLARS`). For the collars the fit gave them 3 Hz because the data's
 planned collars move slowly, but the decoded collars carry quick motion of their own (the codecs' step jitter), so on
 the real clip's speech the fitted noise on top gave them 2.3x the speaker's share of quick motion, and, as the noise
 turns each whole arm, it shook the hands (their paths had 6-9x his power at 4-8 Hz).
@@ -295,14 +296,14 @@ class MicroMotion:
 
 
 def calibrated_micro_motion(joints: Sequence[int], fps: float, seed: int, scale: float = 1.0,
-                            head_drift: HeadDrift | None = None, collar_cutoff_hz: float = 0.0) -> MicroMotion:
-    """The layer with the calibration's fitted parameters for `joints` (each must have been fitted); the collars'
-    noise low-passed at `collar_cutoff_hz` instead of their fitted cutoff, unless it is 0."""
+                            head_drift: HeadDrift | None = None,
+                            cutoff_hz: Mapping[int, float] | None = None) -> MicroMotion:
+    """The layer with the calibration's fitted parameters for `joints` (each must have been fitted); a joint in
+    `cutoff_hz` has its slow noise low-passed at that cutoff instead of its fitted one."""
     fitted = load_calibration().micro_motion
     missing = [j for j in joints if j not in fitted]
     if missing:
         raise ValueError(f"joints {missing}: no fitted micro-motion (fitted: {sorted(fitted)})")
-    params = {j: fitted[j] for j in joints}
-    if collar_cutoff_hz > 0:
-        params.update({j: replace(params[j], cutoff_hz=collar_cutoff_hz) for j in COLLARS if j in params})
-    return MicroMotion(params, fps, seed, scale, head_drift=head_drift)
+    cutoff_hz = cutoff_hz or {}
+    return MicroMotion({j: replace(fitted[j], cutoff_hz=cutoff_hz.get(j, fitted[j].cutoff_hz)) for j in joints}, fps,
+                       seed, scale, head_drift=head_drift)

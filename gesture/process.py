@@ -34,7 +34,7 @@ from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
-from gesture.micro_motion import HeadDrift, MicroMotion, calibrated_micro_motion
+from gesture.micro_motion import COLLARS, HeadDrift, MicroMotion, calibrated_micro_motion
 from gesture.nn.weights import UnsupportedFormError, require_fast_form
 from gesture.stabilizer import ArmStabilizer
 
@@ -137,7 +137,8 @@ def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotio
         return None
     drift = HeadDrift(cfg.head_drift_rad, cfg.head_drift_hz, MOTION_FPS, seed) if cfg.head_drift_rad > 0 else None
     try:
-        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, drift, cfg.collar_cutoff_hz)
+        collars = {j: cfg.collar_cutoff_hz for j in COLLARS} if cfg.collar_cutoff_hz > 0 else {}
+        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, drift, collars)
     except ValueError as error:
         raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
 

@@ -219,7 +219,7 @@ def test_the_config_builds_the_head_drift_and_names_its_options():
 def test_slower_collars_change_only_the_collars_and_keep_their_spread():
     poses = _rest_poses(25 * 120)
     fitted = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses)
-    slower = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0, collar_cutoff_hz=1.5), poses)
+    slower = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0, cutoff_hz={j: 1.5 for j in COLLARS}), poses)
     others = [j for j in range(55) if j not in COLLARS]
     np.testing.assert_array_equal(slower[:, others], fitted[:, others])  # the same random draws
     collars = list(COLLARS)
