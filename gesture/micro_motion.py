@@ -28,10 +28,10 @@ it the agent's neck and head had 0.71 of the ground truth's pose diversity on va
 the real speaker's on his speech (seeds 0-9), at their speeds.
 
 A joint's noise can be made slower than fitted (`calibrated_micro_motion`'s `cutoff_hz`; the config's
-`gesture.micro_motion.collar_cutoff_hz` does it for the `COLLARS`). For the collars the fit gave them 3 Hz because the data's
-planned collars move slowly, but the decoded collars carry quick motion of their own (the codecs' step jitter), so on
-the real clip's speech the fitted noise on top gave them 2.3x the speaker's share of quick motion, and, as the noise
-turns each whole arm, it shook the hands (their paths had 6-9x his power at 4-8 Hz).
+`gesture.micro_motion.collar_cutoff_hz` does it for the `COLLARS`). The fit gave the collars 3 Hz because the
+data's planned collars move slowly, but the decoded collars carry quick motion of their own (the codecs' step
+jitter), so on the real clip's speech the fitted noise on top gave them 2.3x the speaker's share of quick motion,
+and, as the noise turns each whole arm, it shook the hands (their paths had 6-9x his power at 4-8 Hz).
 """
 
 from __future__ import annotations
