@@ -130,6 +130,21 @@ def test_report_tells_the_real_clip_from_the_still_baseline():
     assert baseline["protocol"]["fgd_kinetic"] > 1.0
 
 
+@needs_clip
+def test_the_speaker_against_himself_is_level_on_a_repeated_half_and_names_his_own_variation():
+    real, skeleton = R.load_clip(CLIP_NPZ), Skeleton.default()
+    first, _ = R.halves(real)
+    repeated = M.MotionClip(*(np.concatenate([x, x]) for x in (first.poses, first.trans, first.expressions)), FPS)
+    level = R.speaker_against_himself(repeated, skeleton)
+    for group in R.JOINT_GROUPS:
+        for value in level["ratios"]["groups"][group].values():
+            assert value == pytest.approx(1.0)
+    assert level["goal_ratios_outside"] == [] and level["seconds_each"] == pytest.approx(len(first.poses) / FPS)
+    own = R.speaker_against_himself(real, skeleton)
+    assert "wrists.still_fraction" in own["goal_ratios_outside"]  # his second half holds the wrists twice as often
+    assert own["ratios"]["groups"]["wrists"]["still_fraction"] > 1.5
+
+
 def test_cli_names_a_missing_file(tmp_path, capsys):
     code = R.main(["--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"), "--no-video"])
     assert code == 2

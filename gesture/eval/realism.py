@@ -83,7 +83,8 @@ JOINT_GROUPS = {
 }
 # the config sections of the layers after decoding
 RUNTIME_LAYERS = ("alternation_filter", "micro_motion", "face", "foot_lock", "stabilizer")
-GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four
+GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four ...
+GROUP_GOAL_RANGE = (0.67, 1.5)  # ... and this range for every ratio of theirs
 STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)
 WORLD_PARTS = {"chest": (0, 3, 6, 9), "head": (0, 3, 6, 9, 12, 15)}  # root-to-part chains measured in space
@@ -357,7 +358,7 @@ def ratios(stats: dict, real: dict) -> dict:
 def goal_check(entry: dict, real_beat_align: float) -> dict:
     """Issue 18's goals for the agent: group ratios in 0.67-1.5, L1div within 25 %, BeatAlign >= real - 0.15."""
     r = entry["ratios"]["groups"]
-    group_ok = all(0.67 <= r[g][k] <= 1.5 for g in GOAL_GROUPS for k in r[g])
+    group_ok = all(GROUP_GOAL_RANGE[0] <= r[g][k] <= GROUP_GOAL_RANGE[1] for g in GOAL_GROUPS for k in r[g])
     calib_ok = all(0.8 <= v <= 1.25 for g in GOAL_GROUPS for v in r[g].values())
     return {
         "groups_within_0.67_1.5": group_ok,
@@ -443,10 +444,29 @@ def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
     return ROOT / (codecs if codecs is not None else "checkpoints/codecs")
 
 
+def halves(clip: M.MotionClip) -> tuple[M.MotionClip, M.MotionClip]:
+    """The clip's first and second halves."""
+    n = len(clip.poses) // 2
+    return tuple(M.MotionClip(clip.poses[part], clip.trans[part], clip.expressions[part], clip.fps)
+                 for part in (slice(0, n), slice(n, 2 * n)))
+
+
+def speaker_against_himself(real: M.MotionClip, skeleton: Skeleton) -> dict:
+    """The real clip's second half measured against its first as an agent is against the real clip (``describe``'s
+    measures as ratios; no protocol metrics): how much the speaker himself varies within one take, and which of the
+    goal groups' ratios that alone puts outside GROUP_GOAL_RANGE."""
+    first, second = halves(real)
+    half_ratios = ratios(describe(second, skeleton), describe(first, skeleton))
+    low, high = GROUP_GOAL_RANGE
+    outside = [f"{group}.{key}" for group in GOAL_GROUPS for key, value in half_ratios["groups"][group].items()
+               if not low <= value <= high]
+    return {"seconds_each": len(first.poses) / first.fps, "ratios": half_ratios, "goal_ratios_outside": outside}
+
+
 def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
                  mean_speed: np.ndarray, skeleton: Skeleton) -> dict:
     real_desc = describe(real, skeleton)
-    report: dict = {"real": dict(real_desc, protocol={})}
+    report: dict = {"real": dict(real_desc, protocol={}), "real_halves": speaker_against_himself(real, skeleton)}
     for name, clip in motions.items():
         desc = describe(clip, skeleton)
         protocol = protocol_metrics(clip, real, speech, mean_speed)
@@ -532,7 +552,7 @@ def _json_safe(value):
 
 
 def format_table(report: dict) -> str:
-    names = [k for k in report if k not in ("real", "meta")]
+    names = [k for k in report if k not in ("real", "real_halves", "meta")]
     lines = [f"{'ratio to real':30s}" + "".join(f"{n:>32s}" for n in names)]
     for group in JOINT_GROUPS:
         for key in report["real"]["groups"][group]:
@@ -553,6 +573,11 @@ def format_table(report: dict) -> str:
     lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:32.2f}" for n in names))
     lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:32.3f}" for n in names))
     lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:32.3f}" for n in names))
+    halves_ = report["real_halves"]
+    lines.append(f"\nthe speaker against himself (the clip's second {halves_['seconds_each']:.0f} s / its first):")
+    for group in GOAL_GROUPS:
+        values = halves_["ratios"]["groups"][group]
+        lines.append(f"{group:30s}" + "  ".join(f"{key} {value:.2f}" for key, value in values.items()))
     return "\n".join(lines)
 
 
