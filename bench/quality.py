@@ -8,10 +8,10 @@ about 5 minutes a minute of speech) and summarises issue 18's goals for the agen
 (gesture.eval.realism.goal_check), the ratios to the real speaker that fall outside 0.67-1.5, L1div, BeatAlign
 against the real clip and the share of quick motion per joint group and of the hands' paths; and, per take, which
 goal ratios the speaker's own second half has outside 0.67-1.5 against his first (his variation within a take).
-`--beat2` measures the takes of a BEAT2 release directory instead (gesture.data.beat2's layouts; those of `--speaker` in `--split` that have
-speech, or `--takes`), each take against its own real motion, and adds the median of every goal ratio over takes and
-seeds: the held-out measurement issue 18 asks for. `--suite` adds the held-out synthetic suite (`python -m
-gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report comes first: the numbers are
+`--beat2` measures the takes of a BEAT2 release directory instead (gesture.data.beat2's layouts; those of
+`--speaker` in `--split` that have speech, or `--takes`), each take against its own real motion, and adds the median
+of every goal ratio over takes and seeds: the held-out measurement issue 18 asks for. `--suite` adds the held-out
+synthetic suite (`python -m gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report comes first: the numbers are
 quality, not time, but the agent runs in real time through `launch.py`, and a loaded machine is worth knowing about.
 `--config` measures another agent (an app config such as configs/default.yaml pointing at other checkpoints) in
 both reports.

@@ -17,6 +17,9 @@ way, so the report is seen to discriminate:
 - ``real_through_codecs``: the real clip encoded and decoded by the agent's codecs (``--codecs``, else the config's
   ``gesture.codec_checkpoints``): the ceiling of what an agent speaking through those codecs can reach.
 
+And the speaker against himself (``real_halves``): the clip's second half measured against its first, how far one
+real speaker varies within one take (``speaker_against_himself``).
+
 Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - per joint group (``JOINT_GROUPS``): angular speed of the local rotations (rad/s; the angle of R_t^T R_t+1 times
   the frame rate), its median and 90th percentile, the fraction of still frames (< ``STILL_RAD_S``), and pose
