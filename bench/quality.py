@@ -11,10 +11,10 @@ goal ratios the speaker's own second half has outside 0.67-1.5 against his first
 `--beat2` measures the takes of a BEAT2 release directory instead (gesture.data.beat2's layouts; those of
 `--speaker` in `--split` that have speech, or `--takes`), each take against its own real motion, and adds the median
 of every goal ratio over takes and seeds: the held-out measurement issue 18 asks for. `--suite` adds the held-out
-synthetic suite (`python -m gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report comes first: the numbers are
-quality, not time, but the agent runs in real time through `launch.py`, and a loaded machine is worth knowing about.
-`--config` measures another agent (an app config such as configs/default.yaml pointing at other checkpoints) in
-both reports.
+synthetic suite (`python -m gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report
+comes first: the numbers are quality, not time, but the agent runs in real time through `launch.py`, and a loaded
+machine is worth knowing about. `--config` measures another agent (an app config such as configs/default.yaml
+pointing at other checkpoints) in both reports.
 """
 
 from __future__ import annotations
