@@ -145,6 +145,16 @@ def test_the_speaker_against_himself_is_level_on_a_repeated_half_and_names_his_o
     assert own["ratios"]["groups"]["wrists"]["still_fraction"] > 1.5
 
 
+def test_the_table_ends_with_the_speaker_against_himself():
+    import json
+
+    report = json.loads((R.ROOT / "docs" / "realism_after.json").read_text())
+    table = R.format_table(report)
+    own = report["real_halves"]["ratios"]["groups"]["wrists"]["still_fraction"]
+    assert "the speaker against himself" in table and f"still_fraction {own:.2f}" in table
+    assert "real_halves" not in table.splitlines()[0]  # not a column of the motions
+
+
 def test_cli_names_a_missing_file(tmp_path, capsys):
     code = R.main(["--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"), "--no-video"])
     assert code == 2

@@ -576,10 +576,10 @@ def format_table(report: dict) -> str:
     lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:32.2f}" for n in names))
     lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:32.3f}" for n in names))
     lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:32.3f}" for n in names))
-    halves_ = report["real_halves"]
-    lines.append(f"\nthe speaker against himself (the clip's second {halves_['seconds_each']:.0f} s / its first):")
+    own = report["real_halves"]
+    lines.append(f"\nthe speaker against himself (the clip's second {own['seconds_each']:.0f} s / its first):")
     for group in GOAL_GROUPS:
-        values = halves_["ratios"]["groups"][group]
+        values = own["ratios"]["groups"][group]
         lines.append(f"{group:30s}" + "  ".join(f"{key} {value:.2f}" for key, value in values.items()))
     return "\n".join(lines)
 
