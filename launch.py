@@ -1,9 +1,9 @@
 """Run the embodied conversational agent: io → dialogue → gesture → render, each in its own process.
 
-    python launch.py --mic                                   talk to it (real time)
-    python launch.py --replay talk.wav                       a recording stands in for the microphone
-    python launch.py --replay talk.wav --headless --mp4 out.mp4   offline, lossless, as fast as possible
-    python launch.py --speak agent.wav                       the agent speaks this recording (co-speech gesture)
+python launch.py --mic                                   talk to it (real time)
+python launch.py --replay talk.wav                       a recording stands in for the microphone
+python launch.py --replay talk.wav --headless --mp4 out.mp4   offline, lossless, as fast as possible
+python launch.py --speak agent.wav                       the agent speaks this recording (co-speech gesture)
 """
 
 from __future__ import annotations
@@ -26,14 +26,15 @@ from agent.latency import format_table
 from agent.sections import AppConfig, load_app_config
 from agent.stage import SUPERVISOR
 from agent.supervisor import Supervisor, run_worker
-from core.audio_file import AudioFileError, load_audio
-from core.bus import stage_address
-from core.component import RunContext
-from core.config import ConfigError
-from core.threads import limit_threads
-from core.timing import SAMPLE_RATE_HZ
+from ecas.core.audio_file import AudioFileError, load_audio
+from ecas.core.bus import stage_address
+from ecas.core.component import RunContext
+from ecas.core.config import ConfigError
+from ecas.core.paths import DEFAULT_CONFIG
+from ecas.core.threads import limit_threads
+from ecas.core.timing import SAMPLE_RATE_HZ
 
-DEFAULT_CONFIG = Path(__file__).parent / "configs" / "default.yaml"
+DEFAULT_CONFIG = DEFAULT_CONFIG
 EXIT_USAGE = 2
 
 
@@ -42,23 +43,37 @@ def parse_args(argv=None) -> argparse.Namespace:
     source = p.add_mutually_exclusive_group()
     source.add_argument("--mic", action="store_true", help="listen to the microphone (real time)")
     source.add_argument("--replay", metavar="FILE", help="replay a recording as the user's voice")
-    source.add_argument("--browser-mic", action="store_true",
-                        help="the dashboard page's microphone is the user's voice (real time)")
+    source.add_argument(
+        "--browser-mic", action="store_true", help="the dashboard page's microphone is the user's voice (real time)"
+    )
     p.add_argument("--speak", metavar="FILE", help="the agent speaks this recording (playback backend)")
     p.add_argument("--headless", action="store_true", help="no dashboard and no speaker")
-    p.add_argument("--host", metavar="ADDR",
-                   help="serve the dashboard on this address (default 127.0.0.1: this machine only)")
+    p.add_argument(
+        "--host", metavar="ADDR", help="serve the dashboard on this address (default 127.0.0.1: this machine only)"
+    )
     p.add_argument("--mp4", metavar="OUT", help="write the rendered conversation to this MP4")
     p.add_argument("--fast", action="store_true", help="as fast as possible and lossless (offline)")
     p.add_argument("--seed", type=int, help="random seed (offline runs are deterministic with it)")
-    p.add_argument("--character", metavar="NAME|INDEX",
-                   help="the speaker the gesture model imitates (a name from the checkpoint's speaker map, or a row)")
+    p.add_argument(
+        "--character",
+        metavar="NAME|INDEX",
+        help="the speaker the gesture model imitates (a name from the checkpoint's speaker map, or a row)",
+    )
     p.add_argument("--report", metavar="DIR", help="report directory (default: a new runs/<time>-<suffix>/)")
-    p.add_argument("--worker", action="store_true",
-                   help="only start this host's stages (run.spawn); another host's launch.py supervises")
+    p.add_argument(
+        "--worker",
+        action="store_true",
+        help="only start this host's stages (run.spawn); another host's launch.py supervises",
+    )
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="YAML config (default: %(default)s)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                   help="override one option, e.g. --set render.size=384 (repeatable)")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override one option, e.g. --set render.size=384 (repeatable)",
+    )
     args = p.parse_args(argv)
     if args.browser_mic and args.headless:
         p.error("--browser-mic needs the dashboard: drop --headless")
@@ -108,6 +123,7 @@ def with_dialogue_spec(app: AppConfig) -> AppConfig:
     if app.gesture.dialogue_spec is not None or "dialogue" in app.run.components:
         return app
     from dialogue.backend import condition_spec
+
     return replace(app, gesture=replace(app.gesture, dialogue_spec=condition_spec(app.dialogue)))
 
 
@@ -147,8 +163,10 @@ def check_checkpoints(app: AppConfig) -> None:
     """The shipped gesture stage needs its checkpoints: say so now, not from inside a started stage."""
     if "gesture" not in app.run.local_stages or "gesture" in app.run.components:
         return
-    for key, what in (("lm_checkpoint", "a directory written by python -m gesture.train_lm"),
-                      ("codec_checkpoints", "a directory with the upper/, lower/ and face/ codecs")):
+    for key, what in (
+        ("lm_checkpoint", "a directory written by python -m gesture.train_lm"),
+        ("codec_checkpoints", "a directory with the upper/, lower/ and face/ codecs"),
+    ):
         path = getattr(app.gesture, key)
         if path is None:
             raise ConfigError(f"gesture.{key}: required ({what}); the config sets none")
@@ -196,16 +214,19 @@ def check_ports(app: AppConfig, worker: bool) -> None:
         address = stage_address(stage, app.bus, Path(tempfile.gettempdir()))
         if not address.startswith("tcp://"):
             continue
-        host, _, port = address[len("tcp://"):].rpartition(":")
+        host, _, port = address[len("tcp://") :].rpartition(":")
         option = f"bus.endpoints.{stage}" if stage in app.bus.endpoints else "bus.base_port"
         if not _port_free("" if host == "*" else host.strip("[]"), int(port)):
-            raise ConfigError(f"{option}: tcp port {port} on {host} ({stage}) is in use, perhaps by another run; "
-                              f"set another {option}")
+            raise ConfigError(
+                f"{option}: tcp port {port} on {host} ({stage}) is in use, perhaps by another run; set another {option}"
+            )
     if app.dashboard.enabled and not worker and app.dashboard.port:
         host, port = app.dashboard.host, app.dashboard.port
         if not _port_free(host, port):
-            raise ConfigError(f"dashboard.port: {host}:{port} is in use, perhaps by another run's dashboard; "
-                              f"set another dashboard.port (0 takes any free port)")
+            raise ConfigError(
+                f"dashboard.port: {host}:{port} is in use, perhaps by another run's dashboard; "
+                f"set another dashboard.port (0 takes any free port)"
+            )
 
 
 def _port_free(host: str, port: int) -> bool:
@@ -240,16 +261,22 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USAGE
     run_dir = app.run.make_report_dir(time.strftime("%Y%m%d-%H%M%S"))
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False))
+    (run_dir / "config.yaml").write_text(
+        yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False)
+    )
     run = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
     if args.worker:
         return run_worker(app, run)
     supervisor = Supervisor(app, run)
     code = supervisor.run()
     try:
-        summary = supervisor.latency.write(run_dir, supervisor.counters(),
-                                           {s: asdict(e) for s, e in supervisor.clock.estimates().items()},
-                                           supervisor.stream_timing(), live=app.run.live)
+        summary = supervisor.latency.write(
+            run_dir,
+            supervisor.counters(),
+            {s: asdict(e) for s, e in supervisor.clock.estimates().items()},
+            supervisor.stream_timing(),
+            live=app.run.live,
+        )
     except OSError as e:
         print(f"error: cannot write the latency report in {run_dir} ({e.strerror or e})", file=sys.stderr)
         return code or 1

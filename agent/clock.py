@@ -31,8 +31,10 @@ class ClockSync:
             self._best[stage] = (round_trip, offset)
 
     def estimates(self) -> dict[str, OffsetEstimate]:
-        return {stage: OffsetEstimate(offset, max(0, rtt) // 2, self._count[stage])
-                for stage, (rtt, offset) in self._best.items()}
+        return {
+            stage: OffsetEstimate(offset, max(0, rtt) // 2, self._count[stage])
+            for stage, (rtt, offset) in self._best.items()
+        }
 
     def offsets_ns(self) -> dict[str, int]:
         """The offsets to subtract; one within its own uncertainty is taken as zero (e.g. one host's clock)."""

@@ -10,15 +10,16 @@ import os
 import shutil
 import signal
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any
 
 from agent.sections import AppConfig
 from agent.stage import StageRunner, Topology
-from core.bus import bus_addresses
-from core.component import RunContext
-from core.threads import limit_threads
+from ecas.core.bus import bus_addresses
+from ecas.core.component import RunContext
+from ecas.core.threads import limit_threads
 
 COMPONENT_FACTORIES = {
     "io": "agent.io.process:create_component",
@@ -57,8 +58,9 @@ def stage_main(launch: StageLaunch) -> None:
     supervisor = SupervisorWatch(launch.ipc_dir)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the supervisor decides
     redirect_output(launch.log_path)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
-                        format=f"%(asctime)s {launch.stage} %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO, stream=sys.stderr, format=f"%(asctime)s {launch.stage} %(levelname)s %(name)s: %(message)s"
+    )
     limit_threads()
     log = logging.getLogger(launch.stage)
     try:
@@ -90,7 +92,7 @@ class SupervisorWatch:
 
     def __init__(self, ipc_dir: Path):
         self.ipc_dir = ipc_dir
-        self.stop: Optional[Callable[[], None]] = None
+        self.stop: Callable[[], None] | None = None
         signal.signal(SUPERVISOR_DIED, self._died)
         try:
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, SUPERVISOR_DIED)

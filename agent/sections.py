@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import secrets
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Sequence
+from typing import Literal
 
-from core.bus import STAGES, BusConfig
-from core.config import ConfigError, apply_override, build_dataclass, load_yaml, parse_override
 from agent.dashboard.config import DashboardConfig
 from dialogue.config import DialogueConfig
+from ecas.core.bus import STAGES, BusConfig
+from ecas.core.config import ConfigError, apply_override, build_dataclass, load_yaml, parse_override
 from gesture.config import GestureConfig
 from render.config import RenderConfig
 
@@ -20,12 +21,12 @@ class IoConfig:
     """The user's side: where the user's audio comes from and whether the agent is heard."""
 
     source: Literal["mic", "replay", "silence"] = "replay"
-    replay_path: Optional[str] = None
+    replay_path: str | None = None
     tail_silence_s: float = 6.0  # after a replay, so the agent can answer the last words
     silence_s: float = 10.0  # length of a `silence` source
     speaker: bool = False
-    input_device: Optional[str] = None
-    output_device: Optional[str] = None
+    input_device: str | None = None
+    output_device: str | None = None
 
     def __post_init__(self):
         if self.tail_silence_s < 0:
@@ -44,9 +45,9 @@ class RunConfig:
 
     live: bool = True
     seed: int = 0
-    report_dir: Optional[str] = None  # default: a new runs/<time>-<suffix>/
+    report_dir: str | None = None  # default: a new runs/<time>-<suffix>/
     stages: tuple[str, ...] = STAGES
-    spawn: Optional[tuple[str, ...]] = None
+    spawn: tuple[str, ...] | None = None
     components: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -57,8 +58,9 @@ class RunConfig:
         if self.seed < 0:
             raise ConfigError(f"run.seed: must be >= 0 (--seed), got {self.seed}")
         if not self.stages or self.stages[0] != "io" or list(self.stages) != [s for s in STAGES if s in self.stages]:
-            raise ConfigError(f"run.stages: must start with io and keep the order {', '.join(STAGES)}; "
-                              f"got {list(self.stages)}")
+            raise ConfigError(
+                f"run.stages: must start with io and keep the order {', '.join(STAGES)}; got {list(self.stages)}"
+            )
         unknown = sorted(set(self.spawn or ()) - set(self.stages))
         if unknown:
             raise ConfigError(f"run.spawn: {unknown[0]} is not in run.stages {list(self.stages)}")
@@ -98,8 +100,10 @@ class AppConfig:
         if self.run.spawn is not None and self.bus.transport == "ipc" and not self.bus.endpoints:
             raise ConfigError("run.spawn: stages on other hosts need bus.transport: tcp (or tcp bus.endpoints)")
         if self.run.spawn is not None and self.bus.transport == "tcp" and self.bus.base_port == 0:
-            raise ConfigError("bus.base_port: 0 (free ports) needs every stage on this host; with run.spawn the "
-                              "hosts must agree on ports: give a base port")
+            raise ConfigError(
+                "bus.base_port: 0 (free ports) needs every stage on this host; with run.spawn the "
+                "hosts must agree on ports: give a base port"
+            )
 
 
 def load_app_config(path: Path | str, overrides: Sequence[str] = ()) -> AppConfig:

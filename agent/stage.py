@@ -23,22 +23,21 @@ import logging
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
 
 import zmq
 
-from core.bus import Publisher, Subscriber, stage_address
-from core.component import Component, RunContext, Source, StageFailed
-from core.messages import AudioUser, Command, Control, Message, Metrics, StageState
 from agent.sections import AppConfig
-from core.timing import STEP_NS
+from ecas.core.bus import Publisher, Subscriber, stage_address
+from ecas.core.component import Component, RunContext, Source, StageFailed
+from ecas.core.messages import AudioUser, Command, Control, Message, Metrics, StageState
+from ecas.core.timing import STEP_NS
 
 log = logging.getLogger(__name__)
 
-OUTPUT_TOPIC = {"io": "audio.user", "dialogue": "dialogue.step", "gesture": "gesture.step",
-                "render": "render.frame"}
+OUTPUT_TOPIC = {"io": "audio.user", "dialogue": "dialogue.step", "gesture": "gesture.step", "render": "render.frame"}
 DATA_INPUTS = {  # stage -> {upstream stage: topic}; the io stage's speaker input is added when enabled
     "dialogue": {"io": "audio.user"},
     "gesture": {"dialogue": "dialogue.step"},
@@ -57,7 +56,7 @@ class Topology:
     data_inputs: dict[str, str] = field(default_factory=dict)
 
     @classmethod
-    def of(cls, stage: str, pipeline: Sequence[str], speaker: bool = False) -> "Topology":
+    def of(cls, stage: str, pipeline: Sequence[str], speaker: bool = False) -> Topology:
         inputs = {up: topic for up, topic in DATA_INPUTS.get(stage, {}).items() if up in pipeline}
         if stage == "io" and speaker and "dialogue" in pipeline:
             inputs["dialogue"] = "dialogue.step"
@@ -68,7 +67,7 @@ class Topology:
         return self.pipeline[-1]
 
     @property
-    def sink_primary_topic(self) -> Optional[str]:
+    def sink_primary_topic(self) -> str | None:
         return OUTPUT_TOPIC[self.pipeline[-2]] if len(self.pipeline) > 1 else None
 
     @property
@@ -81,8 +80,15 @@ class Topology:
 
 
 class StageRunner:
-    def __init__(self, topology: Topology, app: AppConfig, run: RunContext, ipc_dir: Path,
-                 component: Component, source: Optional[Source] = None):
+    def __init__(
+        self,
+        topology: Topology,
+        app: AppConfig,
+        run: RunContext,
+        ipc_dir: Path,
+        component: Component,
+        source: Source | None = None,
+    ):
         self.name = topology.stage
         self.topology = topology
         self.bus = app.bus
@@ -90,8 +96,7 @@ class StageRunner:
         self.component = component
         self.source = source
         self.ctx = zmq.Context.instance()
-        self.pub = Publisher(self.ctx, stage_address(self.name, self.bus, ipc_dir), self.name,
-                             lossless=not run.live)
+        self.pub = Publisher(self.ctx, stage_address(self.name, self.bus, ipc_dir), self.name, lossless=not run.live)
         topics = ["control", *set(topology.data_inputs.values())]
         addresses = [stage_address(peer, self.bus, ipc_dir) for peer in sorted(topology.peers)]
         queue = self.bus.live_queue_steps * max(1, len(topology.data_inputs))  # steps of every input topic
@@ -103,7 +108,7 @@ class StageRunner:
         self.stopping = False
         self.handler_errors = 0
         self.failures_in_a_row = 0
-        self.fatal_error: Optional[str] = None
+        self.fatal_error: str | None = None
         self.handled = 0
         self.progress_step = -1
         self.published = 0  # messages on the stage's output topic
@@ -196,10 +201,17 @@ class StageRunner:
         return [str(p) for p in partial()] if callable(partial) else []
 
     def counters(self) -> dict[str, int | float]:
-        counters = {"dropped": self.sub.dropped, "lost": self.sub.lost, "decode_errors": self.sub.decode_errors,
-                    "handler_errors": self.handler_errors, "handled": self.handled, "sent_steps": self.next_step,
-                    "published": self.published, "progress_step": self.progress_step,
-                    "cpu_s": round(time.process_time(), 3)}
+        counters = {
+            "dropped": self.sub.dropped,
+            "lost": self.sub.lost,
+            "decode_errors": self.sub.decode_errors,
+            "handler_errors": self.handler_errors,
+            "handled": self.handled,
+            "sent_steps": self.next_step,
+            "published": self.published,
+            "progress_step": self.progress_step,
+            "cpu_s": round(time.process_time(), 3),
+        }
         extra = getattr(self.component, "counters", None)
         if callable(extra):
             counters.update(extra())
@@ -219,8 +231,10 @@ class StageRunner:
             self.failures_in_a_row += 1
             log.exception("handler failed on %s step %d from %s; skipped", msg.topic, msg.step, msg.source)
             if self.failures_in_a_row >= self.bus.max_handler_failures:
-                self._fail(f"the handler failed on {self.failures_in_a_row} messages in a row; the last: "
-                           f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+                self._fail(
+                    f"the handler failed on {self.failures_in_a_row} messages in a row; the last: "
+                    f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+                )
             return
         self.failures_in_a_row = 0
         if self.run_ctx.live:
@@ -245,8 +259,15 @@ class StageRunner:
             self.published += 1
         if self.name == self.topology.sink:
             frame_index = getattr(out, "frame_index", 0)
-            self.pub.send(Metrics(session=out.session, step=out.step, t_origin_ns=out.t_origin_ns,
-                                  stamps=out.stamps, values={"frame_index": float(frame_index)}))
+            self.pub.send(
+                Metrics(
+                    session=out.session,
+                    step=out.step,
+                    t_origin_ns=out.t_origin_ns,
+                    stamps=out.stamps,
+                    values={"frame_index": float(frame_index)},
+                )
+            )
 
     def _check_end_of_stream(self) -> None:
         if self.state != StageState.RUNNING or self.source is not None:
@@ -292,8 +313,9 @@ class StageRunner:
             return
         pcm, captured_ns = block
         if captured_ns is None:
-            captured_ns = (self.source_t0_ns + (self.next_step + 1) * STEP_NS) if self.run_ctx.live \
-                else time.monotonic_ns()
+            captured_ns = (
+                (self.source_t0_ns + (self.next_step + 1) * STEP_NS) if self.run_ctx.live else time.monotonic_ns()
+            )
         msg = AudioUser(session=self.run_ctx.session, step=self.next_step, t_origin_ns=captured_ns, pcm=pcm)
         msg.stamps = {self.name: time.monotonic_ns()}
         self._publish(msg)

@@ -23,20 +23,19 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
 
 import zmq
 
-from core.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
 from agent.dashboard.launcher import DASHBOARD, DashboardProcess
 from agent.latency import LatencyRecorder
-from core.messages import Command, Control, Log, Metrics
 from agent.process import COMPONENT_FACTORIES, StageLaunch, stage_main
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
-from core.component import RunContext
-from core.timing import STEP_MS
+from ecas.core.bus import Publisher, Subscriber, stage_address
+from ecas.core.component import RunContext
+from ecas.core.messages import Command, Control, Log, Metrics
+from ecas.core.timing import STEP_MS
 
 log = logging.getLogger("supervisor")
 
@@ -51,11 +50,11 @@ class RunFailed(RuntimeError):
 
 @dataclass
 class StageStatus:
-    process: Optional[mp.Process]  # None: the stage runs on another host (`launch.py --worker`)
+    process: mp.Process | None  # None: the stage runs on another host (`launch.py --worker`)
     state: str = "starting"
     last_beat_s: float = field(default_factory=time.monotonic)
     counters: dict = field(default_factory=dict)
-    error: Optional[str] = None  # the failure the stage reported
+    error: str | None = None  # the failure the stage reported
     partial_files: tuple[str, ...] = ()  # files it is writing under a temporary name
     progress_step: int = -1
     progress_s: float = field(default_factory=time.monotonic)  # when progress_step last moved
@@ -71,11 +70,11 @@ class Supervisor:
         self.latency = LatencyRecorder(self.pipeline)
         self.clock = ClockSync()
         self.interrupted = False
-        self.error: Optional[str] = None
+        self.error: str | None = None
         self.sink_done = False
-        self.started_s: Optional[float] = None  # START sent
-        self.finished_s: Optional[float] = None  # the sink's end of stream
-        self.dashboard: Optional[DashboardProcess] = None
+        self.started_s: float | None = None  # START sent
+        self.finished_s: float | None = None  # the sink's end of stream
+        self.dashboard: DashboardProcess | None = None
 
     # ---- lifecycle -------------------------------------------------------------------------------------------
     def run(self) -> int:
@@ -90,8 +89,11 @@ class Supervisor:
             self._wait_for_start()
             self._send(Command.START)
             self.started_s = time.monotonic()
-            log.info("started: %s (bus: %s)", " → ".join(self.pipeline),
-                     self.ipc_dir if self.app.bus.transport == "ipc" else f"tcp {self.app.bus.host}")
+            log.info(
+                "started: %s (bus: %s)",
+                " → ".join(self.pipeline),
+                self.ipc_dir if self.app.bus.transport == "ipc" else f"tcp {self.app.bus.host}",
+            )
             self._watch()
         except RunFailed as e:
             self.error = str(e)
@@ -115,8 +117,9 @@ class Supervisor:
         try:
             self.pub = Publisher(ctx, address, SUPERVISOR, lossless=True)
         except zmq.ZMQError as e:
-            raise RunFailed(f"the supervisor cannot listen on {address} ({e}); change bus.base_port or "
-                            f"bus.endpoints.supervisor") from None
+            raise RunFailed(
+                f"the supervisor cannot listen on {address} ({e}); change bus.base_port or bus.endpoints.supervisor"
+            ) from None
         addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
         self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
         addresses += [self.dashboard.address] if self.dashboard else []
@@ -138,8 +141,10 @@ class Supervisor:
                 return
             if time.monotonic() > deadline:
                 late = [n for n, s in self.stages.items() if s.state != "ready"]
-                raise RunFailed(f"stage(s) {', '.join(late)} not ready after {self.app.bus.ready_timeout_s:.0f} s"
-                                f"; see {self.run_ctx.run_dir}/<stage>.log")
+                raise RunFailed(
+                    f"stage(s) {', '.join(late)} not ready after {self.app.bus.ready_timeout_s:.0f} s"
+                    f"; see {self.run_ctx.run_dir}/<stage>.log"
+                )
 
     def _sync_clocks(self, rounds: int = 5) -> None:
         for _ in range(rounds):
@@ -208,18 +213,23 @@ class Supervisor:
     def _check_processes(self) -> None:
         now = time.monotonic()
         if self.dashboard and self.dashboard.process.exitcode is not None:
-            raise RunFailed(f"the dashboard died (exit code {self.dashboard.process.exitcode}). Last lines of its "
-                            f"log:\n{_tail(self.dashboard.log_path)}")
+            raise RunFailed(
+                f"the dashboard died (exit code {self.dashboard.process.exitcode}). Last lines of its "
+                f"log:\n{_tail(self.dashboard.log_path)}"
+            )
         for name, status in self.stages.items():
             code = status.process.exitcode if status.process else None
             if code is not None:
-                raise RunFailed(f"stage '{name}' died (exit code {code}). Last lines of its log:\n"
-                                f"{_tail(self.run_ctx.run_dir / f'{name}.log')}")
+                raise RunFailed(
+                    f"stage '{name}' died (exit code {code}). Last lines of its log:\n"
+                    f"{_tail(self.run_ctx.run_dir / f'{name}.log')}"
+                )
             if status.error is not None:
                 raise RunFailed(f"stage '{name}' failed: {status.error}")
             if status.state != "starting" and now - status.last_beat_s > self.app.bus.heartbeat_timeout_s:
-                raise RunFailed(f"stage '{name}' stopped responding (no heartbeat for "
-                                f"{now - status.last_beat_s:.1f} s)")
+                raise RunFailed(
+                    f"stage '{name}' stopped responding (no heartbeat for {now - status.last_beat_s:.1f} s)"
+                )
         self._check_progress(now)
 
     def _check_progress(self, now: float) -> None:
@@ -229,15 +239,20 @@ class Supervisor:
         for upstream, name in zip(self.pipeline, self.pipeline[1:]):
             status, ahead = self.stages[name], self.stages[upstream]
             idle_s = now - max(status.progress_s, self.started_s)
-            if status.state == "running" and ahead.progress_step > status.progress_step \
-                    and idle_s > self.app.bus.stall_timeout_s:
-                raise RunFailed(f"stage '{name}' made no progress for {idle_s:.0f} s while its input waited "
-                                f"(it got to step {status.progress_step}, '{upstream}' to step "
-                                f"{ahead.progress_step}; bus.stall_timeout_s={self.app.bus.stall_timeout_s:g}); "
-                                f"see {self.run_ctx.run_dir / f'{name}.log'}")
+            if (
+                status.state == "running"
+                and ahead.progress_step > status.progress_step
+                and idle_s > self.app.bus.stall_timeout_s
+            ):
+                raise RunFailed(
+                    f"stage '{name}' made no progress for {idle_s:.0f} s while its input waited "
+                    f"(it got to step {status.progress_step}, '{upstream}' to step "
+                    f"{ahead.progress_step}; bus.stall_timeout_s={self.app.bus.stall_timeout_s:g}); "
+                    f"see {self.run_ctx.run_dir / f'{name}.log'}"
+                )
 
     # ---- stopping --------------------------------------------------------------------------------------------
-    def _send(self, command: Command, detail: Optional[dict] = None) -> None:
+    def _send(self, command: Command, detail: dict | None = None) -> None:
         self.pub.send(Control(command=command, detail=detail or {}))
 
     def _stop_all(self) -> None:
@@ -319,14 +334,14 @@ def run_worker(app: AppConfig, run: RunContext) -> int:
     return 130 if stop else (1 if failed else 0)
 
 
-def remove_dead_runs_ipc_dirs(tmp_dir: Optional[Path] = None) -> list[Path]:
+def remove_dead_runs_ipc_dirs(tmp_dir: Path | None = None) -> list[Path]:
     """Remove `ecas-<pid>-*` directories of this user whose supervisor process no longer exists.
 
     A live run's directory is never touched: its pid exists (a recycled pid only delays the clean-up).
     """
     removed = []
     for path in Path(tmp_dir or tempfile.gettempdir()).glob(f"{IPC_DIR_PREFIX}*-*"):
-        pid = path.name[len(IPC_DIR_PREFIX):].split("-", 1)[0]
+        pid = path.name[len(IPC_DIR_PREFIX) :].split("-", 1)[0]
         try:
             if not pid.isdigit() or path.is_symlink() or path.stat().st_uid != os.getuid() or _alive(int(pid)):
                 continue
@@ -335,8 +350,11 @@ def remove_dead_runs_ipc_dirs(tmp_dir: Optional[Path] = None) -> list[Path]:
         shutil.rmtree(path, ignore_errors=True)
         removed.append(path)
     if removed:
-        log.info("removed %d socket director%s of runs that ended without cleaning up", len(removed),
-                 "y" if len(removed) == 1 else "ies")
+        log.info(
+            "removed %d socket director%s of runs that ended without cleaning up",
+            len(removed),
+            "y" if len(removed) == 1 else "ies",
+        )
     return removed
 
 

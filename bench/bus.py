@@ -20,17 +20,21 @@ import zmq
 
 from agent.latency import percentiles
 from bench.machine import machine_report
-from core.bus import Publisher, Subscriber
-from core.messages import Command, Control, GestureStep, RenderFrame
-from core.threads import limit_threads
+from ecas.core.bus import Publisher, Subscriber
+from ecas.core.messages import Command, Control, GestureStep, RenderFrame
+from ecas.core.threads import limit_threads
 
 FRAME_SIDE = 512
 
 
 def gesture_message() -> GestureStep:
     rng = np.random.default_rng(0)
-    return GestureStep(poses=rng.standard_normal((2, 55, 3), np.float32), trans=np.zeros((2, 3), np.float32),
-                       expressions=rng.standard_normal((2, 100), np.float32), tokens=np.arange(20, dtype=np.int32))
+    return GestureStep(
+        poses=rng.standard_normal((2, 55, 3), np.float32),
+        trans=np.zeros((2, 3), np.float32),
+        expressions=rng.standard_normal((2, 100), np.float32),
+        tokens=np.arange(20, dtype=np.int32),
+    )
 
 
 def frame_message() -> RenderFrame:
@@ -95,13 +99,16 @@ def run(count: int) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-bus-") as tmp:
         addresses = {"ipc": lambda i: f"ipc://{tmp}/bench{i}.sock", "tcp": lambda i: f"tcp://127.0.0.1:{5790 + i}"}
         for transport, address in addresses.items():
-            for i, (kind, n, spacing_s) in enumerate((("gesture.step", count, 0.002),
-                                                      ("render.frame_512", count // 4, 0.01))):
+            for i, (kind, n, spacing_s) in enumerate(
+                (("gesture.step", count, 0.002), ("render.frame_512", count // 4, 0.01))
+            ):
                 latency = measure(address(2 * i), kind, n, spacing_s)
                 burst = measure(address(2 * i + 1), kind, n, 0.0)
-                results[f"{kind}/{transport}"] = {"latency_ms": latency["latency_ms"],
-                                                  "burst_msgs_per_s": burst["msgs_per_s"],
-                                                  "received": latency["received"]}
+                results[f"{kind}/{transport}"] = {
+                    "latency_ms": latency["latency_ms"],
+                    "burst_msgs_per_s": burst["msgs_per_s"],
+                    "received": latency["received"],
+                }
     return results
 
 

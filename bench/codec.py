@@ -16,7 +16,7 @@ at the single-core bandwidth measured in the same run (`bench.machine`); the rep
 
 `--quality` adds, for each prepared dtype, the largest feature error against the float32 offline decode
 on random codes at the reference size, and the MPJPE (mm) of the real BEAT2 clip encoded by the shipped
-codecs (checkpoints/codecs) and stream-decoded, next to the float32 decode's.
+codecs (ecas/checkpoints/codecs) and stream-decoded, next to the float32 decode's.
 """
 
 from __future__ import annotations
@@ -30,8 +30,9 @@ import numpy as np
 import torch
 
 from bench.machine import BaselineMatmul, machine_report, memory_read_bandwidth_gbps, percentiles_ms, read_floor_ms
-from core.body import REGIONS
-from core.threads import limit_threads
+from ecas.core.body import REGIONS
+from ecas.core.paths import CHECKPOINTS_DIR, CONFIGS_DIR, data_root
+from ecas.core.threads import limit_threads
 from gesture.codec.build import build_codec, count_parameters
 from gesture.codec.config import load_codec_config
 from gesture.codec.inference import INFERENCE_DTYPES, inference_codec
@@ -39,9 +40,9 @@ from gesture.codec.streaming import StreamingDecoder
 from gesture.nn.weights import kernels_used, stored_weights
 
 REPO = Path(__file__).resolve().parents[1]
-CONFIG_DIR = REPO / "configs" / "codec"
-SHIPPED_CODECS = REPO / "checkpoints" / "codecs"
-BEAT2_CLIP = REPO.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+CONFIG_DIR = CONFIGS_DIR / "codec"
+SHIPPED_CODECS = CHECKPOINTS_DIR / "codecs"
+BEAT2_CLIP = data_root() / "beat2" / "2_scott_0_1_1.npz"
 GOAL_MEDIAN_MS = 6.0
 CAST = "cast"
 PREPARED = "inference_codec"
@@ -61,26 +62,38 @@ class _Variant:
             self.codecs = {r: inference_codec(c, dtype) for r, c in trained.items()}
         self.decoders = {region: StreamingDecoder(codec) for region, codec in self.codecs.items()}
         generator = torch.Generator().manual_seed(0)
-        self.codes = {r: torch.randint(0, config.codebook_size, (total_steps, c.n_q, 1), generator=generator)
-                      for r, c in self.codecs.items()}
+        self.codes = {
+            r: torch.randint(0, config.codebook_size, (total_steps, c.n_q, 1), generator=generator)
+            for r, c in self.codecs.items()
+        }
         self.samples_s: list[float] = []
 
     def step(self, i: int) -> float:
         start = time.perf_counter()
         for region, decoder in self.decoders.items():
-            decoder.step(self.codes[region][i:i + 1])
+            decoder.step(self.codes[region][i : i + 1])
         return time.perf_counter() - start
 
     def result(self, bandwidth_gbps: float, baseline_ms: float) -> dict:
         step = percentiles_ms(np.asarray(self.samples_s) * 1e3)
-        result = {"size": self.size, "path": self.path, "dtype": self.dtype, "parameters": self.parameters,
-                  "decode_step_all_three": step, "vs_baseline_matmul": round(step["median_ms"] / baseline_ms, 4)}
+        result = {
+            "size": self.size,
+            "path": self.path,
+            "dtype": self.dtype,
+            "parameters": self.parameters,
+            "decode_step_all_three": step,
+            "vs_baseline_matmul": round(step["median_ms"] / baseline_ms, 4),
+        }
         stored = stored_weights(list(self.codecs.values()))
         if stored:  # the prepared path; a cast codec reads its parameters through torch modules
             nbytes = sum(w.nbytes for w in stored)
             floor_ms = read_floor_ms(nbytes, bandwidth_gbps)
-            result.update(weight_MB=round(nbytes / 1e6, 3), kernels=kernels_used(stored),
-                          read_floor_ms=round(floor_ms, 4), vs_read_floor=round(step["median_ms"] / floor_ms, 2))
+            result.update(
+                weight_MB=round(nbytes / 1e6, 3),
+                kernels=kernels_used(stored),
+                read_floor_ms=round(floor_ms, 4),
+                vs_read_floor=round(step["median_ms"] / floor_ms, 2),
+            )
         return result
 
 
@@ -97,9 +110,11 @@ def bench(sizes: list[str], dtypes: list[str], prepared: list[str], steps: int, 
         if i >= warmup:
             baseline.sample()
     bandwidth = memory_read_bandwidth_gbps()
-    return {"memory_read_GBps": round(bandwidth, 2),
-            "baseline_matmul": percentiles_ms(np.asarray(baseline.samples_s) * 1e3),
-            "runs": [v.result(bandwidth, baseline.median_ms()) for v in variants]}
+    return {
+        "memory_read_GBps": round(bandwidth, 2),
+        "baseline_matmul": percentiles_ms(np.asarray(baseline.samples_s) * 1e3),
+        "runs": [v.result(bandwidth, baseline.median_ms()) for v in variants],
+    }
 
 
 def quality(dtypes: list[str]) -> dict:
@@ -108,8 +123,10 @@ def quality(dtypes: list[str]) -> dict:
     from gesture.lm.codecs import load_codecs
 
     reference = load_codec_config(CONFIG_DIR / "reference.yaml").codec
-    return {"random_codes_reference_max_abs_error": random_codes_error(reference, dtypes),
-            "beat2_clip_shipped_codecs": clip_mpjpe_mm(load_codecs(SHIPPED_CODECS), BEAT2_CLIP, dtypes)}
+    return {
+        "random_codes_reference_max_abs_error": random_codes_error(reference, dtypes),
+        "beat2_clip_shipped_codecs": clip_mpjpe_mm(load_codecs(SHIPPED_CODECS), BEAT2_CLIP, dtypes),
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -118,16 +135,30 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=30)
-    parser.add_argument("--dtypes", nargs="+", default=["float32", "float16"],
-                        choices=["float32", "bfloat16", "float16"], help="the codecs as trained, cast to these")
-    parser.add_argument("--prepared", nargs="*", default=list(INFERENCE_DTYPES), choices=INFERENCE_DTYPES,
-                        help="inference_codec copies with these weights (activations stay float32)")
+    parser.add_argument(
+        "--dtypes",
+        nargs="+",
+        default=["float32", "float16"],
+        choices=["float32", "bfloat16", "float16"],
+        help="the codecs as trained, cast to these",
+    )
+    parser.add_argument(
+        "--prepared",
+        nargs="*",
+        default=list(INFERENCE_DTYPES),
+        choices=INFERENCE_DTYPES,
+        help="inference_codec copies with these weights (activations stay float32)",
+    )
     parser.add_argument("--quality", action="store_true", help="also measure what each prepared dtype costs")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
-    results = {"threads": torch.get_num_threads(), "machine": machine_report(), "steps": args.steps,
-               "goal_median_ms": GOAL_MEDIAN_MS, **bench(args.sizes, args.dtypes, args.prepared, args.steps,
-                                                          args.warmup)}
+    results = {
+        "threads": torch.get_num_threads(),
+        "machine": machine_report(),
+        "steps": args.steps,
+        "goal_median_ms": GOAL_MEDIAN_MS,
+        **bench(args.sizes, args.dtypes, args.prepared, args.steps, args.warmup),
+    }
     if args.quality:
         results["quality"] = quality(args.prepared)
     if args.json:
@@ -139,9 +170,11 @@ def main(argv: list[str] | None = None) -> None:
     for r in results["runs"]:
         d = r["decode_step_all_three"]
         floor = f", {r['vs_read_floor']}x the weight read floor {r['kernels']}" if "vs_read_floor" in r else ""
-        print(f"{r['size']:>9} {r['path']:>15} {r['dtype']:>8}: decode step (3 codecs) median "
-              f"{d['median_ms']:.2f} ms, p95 {d['p95_ms']:.2f}, p99 {d['p99_ms']:.2f}; "
-              f"{r['vs_baseline_matmul']}x the baseline{floor}")
+        print(
+            f"{r['size']:>9} {r['path']:>15} {r['dtype']:>8}: decode step (3 codecs) median "
+            f"{d['median_ms']:.2f} ms, p95 {d['p95_ms']:.2f}, p99 {d['p99_ms']:.2f}; "
+            f"{r['vs_baseline_matmul']}x the baseline{floor}"
+        )
     if args.quality:
         print(json.dumps(results["quality"], indent=2))
 

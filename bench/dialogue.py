@@ -11,7 +11,6 @@ steps is the in-run baseline: on a loaded machine it rises with the step times.
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import soundfile as sf
@@ -19,13 +18,14 @@ import torch
 from scipy.signal import resample_poly
 
 from bench.machine import machine_report
-from core.config import build_dataclass
-from core.threads import limit_threads
-from core.timing import SAMPLE_RATE_HZ, STEP_MS, STEP_SAMPLES
 from dialogue.config import DialogueConfig
 from dialogue.local_backend import LocalBackend
+from ecas.core.config import build_dataclass
+from ecas.core.paths import data_root
+from ecas.core.threads import limit_threads
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_MS, STEP_SAMPLES
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED_DATA = data_root()
 RECORDINGS = (SHARED_DATA / "speech" / "librivox_0870.wav", SHARED_DATA / "beat2" / "2_scott_0_1_1.wav")
 GOAL_P99_MS = 40.0
 
@@ -67,16 +67,24 @@ def baseline_ms(rng: np.random.Generator) -> float:
 
 def percentiles(values_ms: list[float]) -> dict:
     v = np.asarray(values_ms)
-    return {"median": round(float(np.median(v)), 2), "p95": round(float(np.percentile(v, 95)), 2),
-            "p99": round(float(np.percentile(v, 99)), 2), "max": round(float(v.max()), 2)}
+    return {
+        "median": round(float(np.median(v)), 2),
+        "p95": round(float(np.percentile(v, 95)), 2),
+        "p99": round(float(np.percentile(v, 99)), 2),
+        "max": round(float(v.max()), 2),
+    }
 
 
 def run(beat2_s: float, pause_s: float) -> dict:
     torch.set_num_threads(1)
     backend = LocalBackend.from_config(build_dataclass(DialogueConfig, {}, "dialogue"))
     parts: dict[str, float] = {}
-    for obj, label in ((backend.listener, "listener"), (backend.speaker, "speaker"), (backend.agent_codes, "codes"),
-                       (backend.user_codes, "codes")):
+    for obj, label in (
+        (backend.listener, "listener"),
+        (backend.speaker, "speaker"),
+        (backend.agent_codes, "codes"),
+        (backend.user_codes, "codes"),
+    ):
         _timed(obj, "step", label, parts)
     pcm = conversation(beat2_s, pause_s)
     rng = np.random.default_rng(0)
@@ -84,7 +92,7 @@ def run(beat2_s: float, pause_s: float) -> dict:
     for i in range(0, len(pcm), STEP_SAMPLES):
         parts.clear()
         t = time.process_time()
-        backend.step(pcm[i:i + STEP_SAMPLES])
+        backend.step(pcm[i : i + STEP_SAMPLES])
         step_ms.append((time.process_time() - t) * 1e3)
         for k, v in parts.items():
             part_ms.setdefault(k, []).append(v * 1e3)
@@ -92,9 +100,14 @@ def run(beat2_s: float, pause_s: float) -> dict:
             base_ms.append(baseline_ms(rng))
     user_turns = [t for t in backend.transcript.turns if t.speaker == "user"]
     return {
-        "machine": machine_report(), "backend": "local", "threads": torch.get_num_threads(), "steps": len(step_ms), "step_ms_budget": STEP_MS,
+        "machine": machine_report(),
+        "backend": "local",
+        "threads": torch.get_num_threads(),
+        "steps": len(step_ms),
+        "step_ms_budget": STEP_MS,
         "audio_s": round(len(pcm) / SAMPLE_RATE_HZ, 2),
-        "step_cpu_ms": percentiles(step_ms), "goal_p99_ms": GOAL_P99_MS,
+        "step_cpu_ms": percentiles(step_ms),
+        "goal_p99_ms": GOAL_P99_MS,
         "meets_goal": bool(np.percentile(step_ms, 99) <= GOAL_P99_MS),
         "step_cpu_ms_by_part": {k: percentiles(v) for k, v in sorted(part_ms.items())},
         "baseline_workload_ms": percentiles(base_ms),
@@ -116,8 +129,10 @@ def main(argv=None) -> None:
         print(json.dumps(report, indent=2))
     else:
         c = report["step_cpu_ms"]
-        print(f"step CPU ms: median {c['median']} p95 {c['p95']} p99 {c['p99']} max {c['max']} "
-              f"(goal p99 <= {GOAL_P99_MS}); response latency s: {report['response_latency_s']}")
+        print(
+            f"step CPU ms: median {c['median']} p95 {c['p95']} p99 {c['p99']} max {c['max']} "
+            f"(goal p99 <= {GOAL_P99_MS}); response latency s: {report['response_latency_s']}"
+        )
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
     python -m bench.gesture_step --json
 
 For the reference size (paper LM conditioned on Moshi's vocabulary, reference codecs) and the small CPU size
-(configs/lm/small.yaml + configs/codec/small.yaml), it times the cached generator with float32, bfloat16 and int8
+(ecas/configs/lm/small.yaml + ecas/configs/codec/small.yaml), it times the cached generator with float32, bfloat16 and int8
 weights (`gesture.nn.weights`; the codecs' decoders in float32, float16 and int8), each with the kernels this CPU
 runs (recorded per generator), interleaved step by step, next to a naive baseline in the same run that recomputes the temporal transformer over its full receptive field
 and every depth position at every level, without caches. Weights are random: the matrix products do not depend on
@@ -23,17 +23,16 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from typing import Optional
 
 import numpy as np
 import torch
 
 from bench.machine import BaselineMatmul, machine_report, memory_read_bandwidth_gbps, percentiles_ms, read_floor_ms
-from core.body import REGIONS
-from core.config import build_dataclass, load_yaml
-from core.spec import MOSHI_SPEC, ConditionSpec
-from core.threads import limit_threads
-from core.timing import STEP_MS
+from ecas.core.body import REGIONS
+from ecas.core.config import build_dataclass, load_yaml
+from ecas.core.spec import MOSHI_SPEC, ConditionSpec
+from ecas.core.threads import limit_threads
+from ecas.core.timing import STEP_MS
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecConfig, load_codec_config
 from gesture.generator import GestureGenerator
@@ -51,16 +50,18 @@ def build_size(name: str) -> tuple[GestureLM, dict]:
     if name == "reference":
         lm, codec_cfg = GestureLM(LMConfig(), MOSHI_SPEC), CodecConfig()
     else:
-        file_cfg = build_dataclass(LMFileConfig, load_yaml("configs/lm/small.yaml"))
+        file_cfg = build_dataclass(LMFileConfig, load_yaml("ecas/configs/lm/small.yaml"))
         lm = GestureLM(file_cfg.lm, file_cfg.condition)
-        codec_cfg = load_codec_config("configs/codec/small.yaml").codec
+        codec_cfg = load_codec_config("ecas/configs/codec/small.yaml").codec
     return lm.eval(), {region: build_codec(codec_cfg, region).eval() for region in REGIONS}
 
 
 def _conditions(spec: ConditionSpec, steps: int, seed: int = 0) -> list:
     rng = np.random.default_rng(seed)
-    return [(int(rng.integers(-1, spec.text_vocab)), rng.integers(0, spec.audio_card, spec.n_audio_codebooks))
-            for _ in range(steps)]
+    return [
+        (int(rng.integers(-1, spec.text_vocab)), rng.integers(0, spec.audio_card, spec.n_audio_codebooks))
+        for _ in range(steps)
+    ]
 
 
 def _stats(ms: list[float], prefix: str = "") -> dict:
@@ -96,16 +97,25 @@ def time_parts(gens: dict[str, GestureGenerator], steps: int) -> dict:
                 lm_wall[name].append((mid - start) * 1e3)
                 lm_cpu[name].append((mid_cpu - start_cpu) * 1e3)
                 codec_cpu[name].append((time.thread_time() - mid_cpu) * 1e3)
-    return {name: {**_stats(lm_wall[name], "lm_"), **_stats(lm_cpu[name], "cpu_lm_"),
-                   "cpu_codecs_median_ms": round(float(np.median(codec_cpu[name])), 2)} for name in gens}
+    return {
+        name: {
+            **_stats(lm_wall[name], "lm_"),
+            **_stats(lm_cpu[name], "cpu_lm_"),
+            "cpu_codecs_median_ms": round(float(np.median(codec_cpu[name])), 2),
+        }
+        for name in gens
+    }
 
 
 def weights_of(gen: GestureGenerator, bandwidth_gbps: float) -> dict:
     """The stored weights a step reads (LM step path and codec decoders): bytes, kernels, read time."""
     stored = stored_weights([gen.engine, gen.decoders])
     nbytes = sum(w.nbytes for w in stored)
-    return {"weight_MB": round(nbytes / 1e6, 2), "kernels": kernels_used(stored),
-            "read_floor_ms": round(read_floor_ms(nbytes, bandwidth_gbps), 3)}
+    return {
+        "weight_MB": round(nbytes / 1e6, 2),
+        "kernels": kernels_used(stored),
+        "read_floor_ms": round(read_floor_ms(nbytes, bandwidth_gbps), 3),
+    }
 
 
 def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -> dict:
@@ -118,10 +128,14 @@ def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -
     result["baseline_matmul_median_ms"] = round(baseline.median_ms(), 3)
     for key, gen in gens.items():
         weights = weights_of(gen, bandwidth_gbps)
-        result[key] = {**whole[key], **parts[key], **weights,
-                       "vs_read_floor": round(whole[key]["median_ms"] / weights["read_floor_ms"], 2),
-                       "cpu_vs_read_floor": round(whole[key]["cpu_median_ms"] / weights["read_floor_ms"], 2),
-                       "vs_baseline_matmul": round(whole[key]["median_ms"] / baseline.median_ms(), 3)}
+        result[key] = {
+            **whole[key],
+            **parts[key],
+            **weights,
+            "vs_read_floor": round(whole[key]["median_ms"] / weights["read_floor_ms"], 2),
+            "cpu_vs_read_floor": round(whole[key]["cpu_median_ms"] / weights["read_floor_ms"], 2),
+            "vs_baseline_matmul": round(whole[key]["median_ms"] / baseline.median_ms(), 3),
+        }
         gen.close()
     gen = GestureGenerator(lm, codecs, cfg_scale=CFG_SCALE, engine=NaiveStepper(lm.eval(), guided=True))
     result["naive_float32"] = time_steps({"naive": gen}, naive_steps, warmup=1, baseline=BaselineMatmul())["naive"]
@@ -134,7 +148,7 @@ def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -
     return result
 
 
-def main(argv: Optional[list[str]] = None) -> None:
+def main(argv: list[str] | None = None) -> None:
     limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -143,32 +157,44 @@ def main(argv: Optional[list[str]] = None) -> None:
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"], choices=["reference", "small"])
     args = parser.parse_args(argv)
     bandwidth = memory_read_bandwidth_gbps()
-    report = {"machine": machine_report(), "memory_read_GBps": round(bandwidth, 2), "cfg_scale": CFG_SCALE,
-              "step_budget_ms": STEP_MS,
-              "goal": {"median_ms": 25, "p99_ms": 40, "speedup_vs_naive": 5, "lm_median_ms": 15},
-              "sizes": {name: bench_size(name, args.steps, args.naive_steps, bandwidth) for name in args.sizes}}
+    report = {
+        "machine": machine_report(),
+        "memory_read_GBps": round(bandwidth, 2),
+        "cfg_scale": CFG_SCALE,
+        "step_budget_ms": STEP_MS,
+        "goal": {"median_ms": 25, "p99_ms": 40, "speedup_vs_naive": 5, "lm_median_ms": 15},
+        "sizes": {name: bench_size(name, args.steps, args.naive_steps, bandwidth) for name in args.sizes},
+    }
     if args.json:
         print(json.dumps(report, indent=2))
         return
     cpu = report["machine"]["cpu"]
-    print(f"{cpu['model']} ({', '.join(cpu['flags'])}); memory read {report['memory_read_GBps']} GB/s; kernels "
-          f"{report['machine']['kernels']}")
+    print(
+        f"{cpu['model']} ({', '.join(cpu['flags'])}); memory read {report['memory_read_GBps']} GB/s; kernels "
+        f"{report['machine']['kernels']}"
+    )
     for name, r in report["sizes"].items():
         for key in (f"cached_{dtype}" for dtype in DTYPES):
             s = r[key]
-            print(f"{name:9s} {key:16s} {s['weight_MB']} MB of weights {s['kernels']}: {s['vs_read_floor']}x the "
-                  f"read floor ({s['read_floor_ms']} ms), {s['vs_baseline_matmul']}x the baseline matmul, "
-                  f"{s['speedup_vs_naive']}x faster than naive")
+            print(
+                f"{name:9s} {key:16s} {s['weight_MB']} MB of weights {s['kernels']}: {s['vs_read_floor']}x the "
+                f"read floor ({s['read_floor_ms']} ms), {s['vs_baseline_matmul']}x the baseline matmul, "
+                f"{s['speedup_vs_naive']}x faster than naive"
+            )
         for key in (*(f"cached_{dtype}" for dtype in DTYPES), "naive_float32"):
             s = r[key]
-            print(f"{name:9s} {key:16s} step: wall median {s['median_ms']:7.2f} ms  p95 {s['p95_ms']:7.2f}  "
-                  f"p99 {s['p99_ms']:7.2f} | cpu median {s['cpu_median_ms']:7.2f}  p95 {s['cpu_p95_ms']:7.2f}  "
-                  f"p99 {s['cpu_p99_ms']:7.2f}")
+            print(
+                f"{name:9s} {key:16s} step: wall median {s['median_ms']:7.2f} ms  p95 {s['p95_ms']:7.2f}  "
+                f"p99 {s['p99_ms']:7.2f} | cpu median {s['cpu_median_ms']:7.2f}  p95 {s['cpu_p95_ms']:7.2f}  "
+                f"p99 {s['cpu_p99_ms']:7.2f}"
+            )
             if "lm_median_ms" in s:
-                print(f"{name:9s} {key:16s} LM:   wall median {s['lm_median_ms']:7.2f} ms  p95 {s['lm_p95_ms']:7.2f}  "
-                      f"p99 {s['lm_p99_ms']:7.2f} | cpu median {s['cpu_lm_median_ms']:7.2f}  "
-                      f"p95 {s['cpu_lm_p95_ms']:7.2f}  p99 {s['cpu_lm_p99_ms']:7.2f} | codecs cpu median "
-                      f"{s['cpu_codecs_median_ms']:6.2f}")
+                print(
+                    f"{name:9s} {key:16s} LM:   wall median {s['lm_median_ms']:7.2f} ms  p95 {s['lm_p95_ms']:7.2f}  "
+                    f"p99 {s['lm_p99_ms']:7.2f} | cpu median {s['cpu_lm_median_ms']:7.2f}  "
+                    f"p95 {s['cpu_lm_p95_ms']:7.2f}  p99 {s['cpu_lm_p99_ms']:7.2f} | codecs cpu median "
+                    f"{s['cpu_codecs_median_ms']:6.2f}"
+                )
         print(f"{name:9s} speedup vs naive: wall {r['speedup_vs_naive']}x, cpu {r['cpu_speedup_vs_naive']}x")
 
 

@@ -25,10 +25,15 @@ BASELINE_MATMUL = (256, 2048, 256)  # (M, K, N) float32, 4 products per sample
 
 def machine_report() -> dict:
     """CPU, kernels chosen per form (for a row of 64 inputs), forced-portable switch, load, threads."""
-    return {"cpu": cpu_summary(), "threads": torch.get_num_threads(), "torch": torch.__version__,
-            "load_average_1min": round(os.getloadavg()[0], 2), "portable_kernels_forced": portable_forced(),
-            "kernels": {form: kernel_for(form, 64) for form in WEIGHT_FORMS},
-            "fast_kernel_missing": {form: error for form in WEIGHT_FORMS if (error := fast_kernel_error(form))}}
+    return {
+        "cpu": cpu_summary(),
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "portable_kernels_forced": portable_forced(),
+        "kernels": {form: kernel_for(form, 64) for form in WEIGHT_FORMS},
+        "fast_kernel_missing": {form: error for form in WEIGHT_FORMS if (error := fast_kernel_error(form))},
+    }
 
 
 def memory_read_bandwidth_gbps(buffer_bytes: int = BANDWIDTH_BUFFER_BYTES, repeats: int = BANDWIDTH_REPEATS) -> float:
@@ -68,5 +73,8 @@ class BaselineMatmul:
 
 def percentiles_ms(samples_ms) -> dict[str, float]:
     a = np.asarray(samples_ms, dtype=np.float64)
-    return {"median_ms": round(float(np.median(a)), 3), "p95_ms": round(float(np.percentile(a, 95)), 3),
-            "p99_ms": round(float(np.percentile(a, 99)), 3)}
+    return {
+        "median_ms": round(float(np.median(a)), 3),
+        "p95_ms": round(float(np.percentile(a, 95)), 3),
+        "p99_ms": round(float(np.percentile(a, 99)), 3),
+    }

@@ -13,7 +13,7 @@ goal ratios the speaker's own second half has outside 0.67-1.5 against his first
 of every goal ratio over takes and seeds: the held-out measurement issue 18 asks for. `--suite` adds the held-out
 synthetic suite (`python -m gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report
 comes first: the numbers are quality, not time, but the agent runs in real time through `launch.py`, and a loaded
-machine is worth knowing about. `--config` measures another agent (an app config such as configs/default.yaml
+machine is worth knowing about. `--config` measures another agent (an app config such as ecas/configs/default.yaml
 pointing at other checkpoints) in both reports.
 """
 
@@ -23,14 +23,15 @@ import argparse
 import json
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 
 from bench.machine import machine_report
-from core.errors import DataError
-from core.threads import limit_threads
+from ecas.core.errors import DataError
+from ecas.core.paths import DEFAULT_CONFIG
+from ecas.core.threads import limit_threads
 from gesture.data.beat2 import SPLITS, Take, find_takes
 from gesture.eval.realism import GOAL_GROUPS, GROUP_GOAL_RANGE
 
@@ -42,23 +43,47 @@ def seed_summary(report: dict) -> dict:
     numbers."""
     agent = report["generated"]
     groups = agent["ratios"]["groups"]
-    outside = {f"{group}.{key}": round(value, 3) for group in GOAL_GROUPS for key, value in groups[group].items()
-               if not GROUP_GOAL_RANGE[0] <= value <= GROUP_GOAL_RANGE[1]}
-    return {"goals": agent["goals"], "all_met": all(agent["goals"][k] for k in
-                                                    ("groups_within_0.67_1.5", "l1div_within_25pct",
-                                                     "beat_align_within_0.15")),
-            "ratios_outside": outside, "l1div_ratio": round(agent["ratios"]["l1div"], 3),
-            "beat_align_minus_real": round(agent["beat_align_minus_real"], 3),
-            "quick_share_ratio": {g: round(v["fast_power_share"], 3) for g, v in agent["ratios"]["spectra"].items()},
-            "hands_quick_share_ratio": round(agent["ratios"]["hands"]["quick_share"], 3)}
+    outside = {
+        f"{group}.{key}": round(value, 3)
+        for group in GOAL_GROUPS
+        for key, value in groups[group].items()
+        if not GROUP_GOAL_RANGE[0] <= value <= GROUP_GOAL_RANGE[1]
+    }
+    return {
+        "goals": agent["goals"],
+        "all_met": all(
+            agent["goals"][k] for k in ("groups_within_0.67_1.5", "l1div_within_25pct", "beat_align_within_0.15")
+        ),
+        "ratios_outside": outside,
+        "l1div_ratio": round(agent["ratios"]["l1div"], 3),
+        "beat_align_minus_real": round(agent["beat_align_minus_real"], 3),
+        "quick_share_ratio": {g: round(v["fast_power_share"], 3) for g, v in agent["ratios"]["spectra"].items()},
+        "hands_quick_share_ratio": round(agent["ratios"]["hands"]["quick_share"], 3),
+    }
 
 
-def run_realism(seed: int, out: Path, config: Path, take: Optional[Take] = None) -> dict:
+def run_realism(seed: int, out: Path, config: Path, take: Take | None = None) -> dict:
     """The realism report of one seed, on `take` (its motion and speech) or on the shared clip."""
     run_dir = out / f"seed_{seed}"
     clip = ["--clip", str(take.motion_path.with_suffix("")), "--wav", str(take.audio_path)] if take else []
-    subprocess.run([sys.executable, "-m", "gesture.realism", "--seed", str(seed), "--no-video", "--config",
-                    str(config), "--out", str(run_dir), *clip], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gesture.realism",
+            "--seed",
+            str(seed),
+            "--no-video",
+            "--config",
+            str(config),
+            "--out",
+            str(run_dir),
+            *clip,
+        ],
+        cwd=ROOT,
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
     return json.loads((run_dir / "realism.json").read_text())
 
 
@@ -80,18 +105,26 @@ def select_takes(root: Path, speaker: str, split: str, take_ids: Sequence[str] =
 def pooled(summaries: Sequence[dict], reports: Sequence[dict]) -> dict:
     """Over (take, seed) pairs: how many meet every goal, and the median of each goal ratio."""
     groups = [report["generated"]["ratios"]["groups"] for report in reports]
-    medians = {f"{g}.{k}": round(float(np.median([r[g][k] for r in groups])), 3)
-               for g in GOAL_GROUPS for k in groups[0][g]}
-    return {"runs": len(summaries), "runs_meeting_every_goal": sum(s["all_met"] for s in summaries),
-            "median_group_ratios": medians,
-            "median_l1div_ratio": round(float(np.median([s["l1div_ratio"] for s in summaries])), 3),
-            "median_beat_align_minus_real": round(float(np.median([s["beat_align_minus_real"] for s in summaries])), 3)}
+    medians = {
+        f"{g}.{k}": round(float(np.median([r[g][k] for r in groups])), 3) for g in GOAL_GROUPS for k in groups[0][g]
+    }
+    return {
+        "runs": len(summaries),
+        "runs_meeting_every_goal": sum(s["all_met"] for s in summaries),
+        "median_group_ratios": medians,
+        "median_l1div_ratio": round(float(np.median([s["l1div_ratio"] for s in summaries])), 3),
+        "median_beat_align_minus_real": round(float(np.median([s["beat_align_minus_real"] for s in summaries])), 3),
+    }
 
 
 def run_suite(out: Path, config: Path) -> dict:
     path = out / "suite.json"
-    subprocess.run([sys.executable, "-m", "gesture.evaluate", "--suite", "default", "--config", str(config),
-                    "--out", str(path)], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, "-m", "gesture.evaluate", "--suite", "default", "--config", str(config), "--out", str(path)],
+        cwd=ROOT,
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
     goals = json.loads(path.read_text())["goals"]
     return {"met": goals["met"], "values": goals["values"]}
 
@@ -101,13 +134,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.quality", description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--suite", action="store_true", help="also the held-out synthetic suite (slow)")
-    p.add_argument("--config", type=Path, default=ROOT / "configs" / "default.yaml", help="the agent's app config")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="the agent's app config")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_quality")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--beat2", type=Path, help="measure this BEAT2 directory's takes instead of the shared clip")
     p.add_argument("--speaker", default="scott", help="with --beat2: the speaker whose takes (default %(default)s)")
-    p.add_argument("--split", default="test", choices=sorted(set(SPLITS.values())),
-                   help="with --beat2: the split of train_test_split.csv (default %(default)s)")
+    p.add_argument(
+        "--split",
+        default="test",
+        choices=sorted(set(SPLITS.values())),
+        help="with --beat2: the split of train_test_split.csv (default %(default)s)",
+    )
     p.add_argument("--takes", nargs="+", default=(), metavar="ID", help="with --beat2: exactly these takes")
     args = p.parse_args(argv)
     if args.takes and not args.beat2:
@@ -119,13 +156,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     config = args.config.resolve()
     result: dict = {"machine": machine_report()}
-    reports = {_label(take, seed): run_realism(seed, args.out / take.take_id if take else args.out, config, take)
-               for take in takes for seed in args.seeds}
+    reports = {
+        _label(take, seed): run_realism(seed, args.out / take.take_id if take else args.out, config, take)
+        for take in takes
+        for seed in args.seeds
+    }
     result["realism"] = {label: seed_summary(report) for label, report in reports.items()}
     result["runs_meeting_every_goal"] = [label for label, s in result["realism"].items() if s["all_met"]]
-    result["speaker_halves_outside"] = {take.take_id if take else "clip":  # the speaker's own variation
-                                        reports[_label(take, args.seeds[0])]["real_halves"]["goal_ratios_outside"]
-                                        for take in takes}
+    result["speaker_halves_outside"] = {
+        take.take_id if take else "clip":  # the speaker's own variation
+        reports[_label(take, args.seeds[0])]["real_halves"]["goal_ratios_outside"]
+        for take in takes
+    }
     if args.beat2:
         result["pooled"] = pooled(list(result["realism"].values()), list(reports.values()))
     if args.suite:
@@ -134,8 +176,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps(result))
         return 0
     for label, s in result["realism"].items():
-        print(f"{label}: {'every goal met' if s['all_met'] else 'NOT met'}; L1div {s['l1div_ratio']}, "
-              f"BeatAlign - real {s['beat_align_minus_real']:+}, outside {GROUP_GOAL_RANGE}: {s['ratios_outside']}")
+        print(
+            f"{label}: {'every goal met' if s['all_met'] else 'NOT met'}; L1div {s['l1div_ratio']}, "
+            f"BeatAlign - real {s['beat_align_minus_real']:+}, outside {GROUP_GOAL_RANGE}: {s['ratios_outside']}"
+        )
     print("the speaker's second half against his first, outside the same range:", result["speaker_halves_outside"])
     if args.beat2:
         print("over takes and seeds:", result["pooled"])
@@ -144,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _label(take: Optional[Take], seed: int) -> str:
+def _label(take: Take | None, seed: int) -> str:
     return f"{take.take_id} seed {seed}" if take else f"seed {seed}"
 
 

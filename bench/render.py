@@ -44,8 +44,7 @@ def _motion(n_frames: int):
 
 def _stats(times_s: list[float], cpu_s: list[float] | None = None) -> dict:
     ms = 1000 * np.asarray(times_s)
-    out = {"median_ms": round(float(np.median(ms)), 2), "p95_ms": round(float(np.percentile(ms, 95)), 2),
-           "n": len(ms)}
+    out = {"median_ms": round(float(np.median(ms)), 2), "p95_ms": round(float(np.percentile(ms, 95)), 2), "n": len(ms)}
     if cpu_s is not None:  # CPU time of all this process's threads (llvmpipe's included): less load-dependent
         out["cpu_median_ms"] = round(float(np.median(1000 * np.asarray(cpu_s))), 2)
     return out
@@ -64,8 +63,17 @@ def time_platform(platform: str, n_frames: int, warmup: int = 5) -> dict:
     out = {"vertices": body.n_vertices}
     paths = PATHS + (("in_place_msaa4",) if platform == "egl" else ())
     for width, height in SIZES:
-        views = {path: AvatarView(body, width, height, platform=platform, in_place=path != "new_mesh",
-                                  msaa_samples=4 if path.endswith("msaa4") else 0) for path in paths}
+        views = {
+            path: AvatarView(
+                body,
+                width,
+                height,
+                platform=platform,
+                in_place=path != "new_mesh",
+                msaa_samples=4 if path.endswith("msaa4") else 0,
+            )
+            for path in paths
+        }
         times: dict[str, list[float]] = {path: [] for path in paths}
         cpu: dict[str, list[float]] = {path: [] for path in paths}
         for i in range(n_frames + warmup):  # the paths alternate frame by frame, so they share the machine's load
@@ -94,26 +102,29 @@ def time_stages(n_frames: int = 40) -> dict:
     view = AvatarView(build_avatar(), 512, 512)
     poses, trans, expressions = _motion(n_frames)
     lbs, draw, encode = [], [], []
-    with tempfile.TemporaryDirectory() as tmp:
-        with Mp4Writer(Path(tmp) / "stages.mp4", 512, 512) as writer:
-            for i in range(n_frames):
-                t0 = time.perf_counter()
-                vertices, joints = view.pose(poses[i], trans[i], expressions[i])
-                t1 = time.perf_counter()
-                image = view.draw(vertices, joints)
-                t2 = time.perf_counter()
-                writer.write(image, np.zeros(960, np.float32))
-                t3 = time.perf_counter()
-                lbs.append(t1 - t0)
-                draw.append(t2 - t1)
-                encode.append(t3 - t2)
+    with tempfile.TemporaryDirectory() as tmp, Mp4Writer(Path(tmp) / "stages.mp4", 512, 512) as writer:
+        for i in range(n_frames):
+            t0 = time.perf_counter()
+            vertices, joints = view.pose(poses[i], trans[i], expressions[i])
+            t1 = time.perf_counter()
+            image = view.draw(vertices, joints)
+            t2 = time.perf_counter()
+            writer.write(image, np.zeros(960, np.float32))
+            t3 = time.perf_counter()
+            lbs.append(t1 - t0)
+            draw.append(t2 - t1)
+            encode.append(t3 - t2)
     view.close()
     return {"lbs": _stats(lbs), "render": _stats(draw), "encode": _stats(encode)}
 
 
 def _run_worker(args: list[str]) -> dict:
-    done = subprocess.run([sys.executable, "-m", "bench.render", *args], capture_output=True, text=True,
-                          env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    done = subprocess.run(
+        [sys.executable, "-m", "bench.render", *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )
     if done.returncode != 0:
         lines = [line for line in (done.stderr or done.stdout).splitlines() if "Error" in line or "error" in line]
         return {"error": lines[-1].strip() if lines else f"exit code {done.returncode}"}
@@ -127,8 +138,15 @@ def mp4_throughput(seconds: float | None) -> dict:
     if not BEAT2_NPZ.is_file():
         return {"error": f"{BEAT2_NPZ} not present"}
     with tempfile.TemporaryDirectory() as tmp:
-        stats = render_motion(BEAT2_NPZ, BEAT2_WAV, Path(tmp) / "clip.mp4", width=512, height=512,
-                              max_frames=None if seconds is None else int(seconds * 25), progress=False)
+        stats = render_motion(
+            BEAT2_NPZ,
+            BEAT2_WAV,
+            Path(tmp) / "clip.mp4",
+            width=512,
+            height=512,
+            max_frames=None if seconds is None else int(seconds * 25),
+            progress=False,
+        )
     return {k: round(v, 3) if isinstance(v, float) else v for k, v in stats.items()}
 
 
@@ -136,8 +154,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench.render", description=__doc__.splitlines()[0])
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--frames", type=int, default=60, help="timed frames per size and path")
-    p.add_argument("--mp4-seconds", type=float, default=20.0,
-                   help="seconds of the BEAT2 clip to encode for the real-time factor (0: skip, -1: the whole clip)")
+    p.add_argument(
+        "--mp4-seconds",
+        type=float,
+        default=20.0,
+        help="seconds of the BEAT2 clip to encode for the real-time factor (0: skip, -1: the whole clip)",
+    )
     p.add_argument("--worker", choices=PLATFORMS + ("stages", "mp4"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker in PLATFORMS:
@@ -166,8 +188,10 @@ def main(argv=None) -> int:
                 continue
             for size, paths in rows.items():
                 if size != "vertices":
-                    print(f"{platform} {size}: in-place {paths['in_place']['median_ms']} ms "
-                          f"(p95 {paths['in_place']['p95_ms']}), new mesh {paths['new_mesh']['median_ms']} ms")
+                    print(
+                        f"{platform} {size}: in-place {paths['in_place']['median_ms']} ms "
+                        f"(p95 {paths['in_place']['p95_ms']}), new mesh {paths['new_mesh']['median_ms']} ms"
+                    )
         print(json.dumps({k: v for k, v in result.items() if k != "platforms"}, indent=1))
     return 0
 

@@ -43,8 +43,11 @@ def _whisper_words(doc: dict, path: Path) -> list[RecognizedWord]:
     words = []
     for seg in segments:
         if seg.get("words"):
-            words += [RecognizedWord(w["word"].strip(), float(w["start"]), float(w["end"]))
-                      for w in seg["words"] if w.get("word", "").strip()]
+            words += [
+                RecognizedWord(w["word"].strip(), float(w["start"]), float(w["end"]))
+                for w in seg["words"]
+                if w.get("word", "").strip()
+            ]
         else:
             tokens = seg.get("text", "").split()
             edges = np.linspace(float(seg["start"]), float(seg["end"]), len(tokens) + 1)
@@ -57,7 +60,7 @@ def _textgrid_words(text: str, path: Path) -> list[RecognizedWord]:
     if not tiers:
         raise TranscriptFormatError(f"{path}: no tiers found in the TextGrid")
     interval_tiers = [t for t in tiers if "IntervalTier" in t]
-    chosen = next((t for t in interval_tiers if re.search(r'name\s*=\s*"[^"]*word', t, re.I)), None)
+    chosen = next((t for t in interval_tiers if re.search(r'name\s*=\s*"[^"]*word', t, re.IGNORECASE)), None)
     chosen = chosen or (interval_tiers[0] if interval_tiers else None)
     if chosen is None:
         raise TranscriptFormatError(f"{path}: no interval tier in the TextGrid")

@@ -31,15 +31,29 @@ def clean_word(word: str) -> str | None:
 class StreamingAsr:
     """One utterance at a time: `begin(t_s)`, `feed(pcm)`, `advance()` each step, `finish()`, then poll `final`."""
 
-    def __init__(self, hmm: str | None = None, lm: str | None = None, dict_path: str | None = None,
-                 budget_samples: int = 1920, max_hmm_per_frame: int = 2000, max_words_per_frame: int = 8,
-                 phone_lookahead_frames: int = 5):
+    def __init__(
+        self,
+        hmm: str | None = None,
+        lm: str | None = None,
+        dict_path: str | None = None,
+        budget_samples: int = 1920,
+        max_hmm_per_frame: int = 2000,
+        max_words_per_frame: int = 8,
+        phone_lookahead_frames: int = 5,
+    ):
         from pocketsphinx import Decoder
 
         kwargs = {k: v for k, v in dict(hmm=hmm, lm=lm, dict=dict_path).items() if v is not None}
         # fwdflat off: its second pass costs ~200 ms at end of utterance and did not help accuracy here.
-        self._decoder = Decoder(samprate=VAD_RATE_HZ, loglevel="FATAL", fwdflat=False, maxhmmpf=max_hmm_per_frame,
-                                maxwpf=max_words_per_frame, pl_window=phone_lookahead_frames, **kwargs)
+        self._decoder = Decoder(
+            samprate=VAD_RATE_HZ,
+            loglevel="FATAL",
+            fwdflat=False,
+            maxhmmpf=max_hmm_per_frame,
+            maxwpf=max_words_per_frame,
+            pl_window=phone_lookahead_frames,
+            **kwargs,
+        )
         self.budget_samples = budget_samples
         self.reset()
 
@@ -77,7 +91,7 @@ class StreamingAsr:
         if not self.active:
             return None
         pending = np.concatenate(self._backlog) if self._backlog else np.zeros(0, np.float32)
-        now, rest = pending[: self.budget_samples], pending[self.budget_samples:]
+        now, rest = pending[: self.budget_samples], pending[self.budget_samples :]
         self._backlog = [rest] if rest.size else []
         if now.size:
             pcm16 = (np.clip(now, -1.0, 1.0) * 32767).astype(np.int16)
@@ -95,6 +109,11 @@ class StreamingAsr:
         for seg in self._decoder.seg():
             word = clean_word(seg.word)
             if word:
-                words.append(RecognizedWord(word, self._t0_s + seg.start_frame / FRAME_RATE_HZ,
-                                            self._t0_s + (seg.end_frame + 1) / FRAME_RATE_HZ))
+                words.append(
+                    RecognizedWord(
+                        word,
+                        self._t0_s + seg.start_frame / FRAME_RATE_HZ,
+                        self._t0_s + (seg.end_frame + 1) / FRAME_RATE_HZ,
+                    )
+                )
         return words

@@ -6,11 +6,11 @@ from typing import Protocol
 
 import numpy as np
 
-from core.messages import DialogueStep
-from core.spec import MOSHI_SPEC, ConditionSpec
 from dialogue.config import DialogueConfig
 from dialogue.text_vocab import LOCAL_SPEC
 from dialogue.transcript import Transcript
+from ecas.core.messages import DialogueStep
+from ecas.core.spec import MOSHI_SPEC, ConditionSpec
 
 
 class DialogueBackend(Protocol):
@@ -52,5 +52,6 @@ def condition_spec(cfg: DialogueConfig) -> ConditionSpec:
     if cfg.moshi.lm_config is None:
         return MOSHI_SPEC
     kwargs = json.loads(Path(cfg.moshi.lm_config).read_text())
-    return ConditionSpec(name="moshi", text_vocab=kwargs["text_card"] + 1, audio_card=kwargs["card"] + 1,
-                         embed_dim=kwargs["dim"])
+    return ConditionSpec(
+        name="moshi", text_vocab=kwargs["text_card"] + 1, audio_card=kwargs["card"] + 1, embed_dim=kwargs["dim"]
+    )

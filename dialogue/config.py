@@ -1,9 +1,9 @@
 """Options of the `dialogue:` section of the YAML config."""
 
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Literal
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
 
 
 def _require(cond: bool, key: str, message: str) -> None:
@@ -21,8 +21,11 @@ class VadConfig:
     stop_s: float = 0.6  # silence needed in STOPPING before QUIET (end of the user's turn)
 
     def __post_init__(self):
-        _require(0 < self.stop_threshold <= self.start_threshold < 1, "vad.stop_threshold",
-                 f"need 0 < stop_threshold <= start_threshold < 1, got {self.stop_threshold}, {self.start_threshold}")
+        _require(
+            0 < self.stop_threshold <= self.start_threshold < 1,
+            "vad.stop_threshold",
+            f"need 0 < stop_threshold <= start_threshold < 1, got {self.stop_threshold}, {self.start_threshold}",
+        )
         _require(self.start_s >= 0, "vad.start_s", f"must be >= 0, got {self.start_s}")
         _require(self.stop_s > 0, "vad.stop_s", f"must be > 0, got {self.stop_s}")
 
@@ -49,9 +52,9 @@ class EchoConfig:
 class AsrConfig:
     """pocketsphinx; None uses the en-us model inside the wheel."""
 
-    hmm: Optional[str] = None
-    lm: Optional[str] = None
-    dict: Optional[str] = None
+    hmm: str | None = None
+    lm: str | None = None
+    dict: str | None = None
     # Search limits: with these, a step's decoding stays under ~30 ms CPU (p99) at the same accuracy on
     # librivox_0870 as the defaults (whose p99 is ~140 ms).
     max_hmm_per_frame: int = 2000
@@ -61,8 +64,9 @@ class AsrConfig:
 
     def __post_init__(self):
         _require(self.budget_steps > 1.0, "asr.budget_steps", f"must be > 1 to catch up, got {self.budget_steps}")
-        _require(self.max_hmm_per_frame >= 100, "asr.max_hmm_per_frame",
-                 f"must be >= 100, got {self.max_hmm_per_frame}")
+        _require(
+            self.max_hmm_per_frame >= 100, "asr.max_hmm_per_frame", f"must be >= 100, got {self.max_hmm_per_frame}"
+        )
 
 
 @dataclass(frozen=True)
@@ -86,22 +90,25 @@ class ResponderConfig:
     api_key_env: str = "OPENAI_API_KEY"  # name of the environment variable holding the key, if any
     timeout_s: float = 4.0
     max_tokens: int = 80
-    system_prompt: str = ("You are a friendly embodied agent having a spoken conversation. "
-                          "Answer in one to three short sentences of plain spoken English.")
+    system_prompt: str = (
+        "You are a friendly embodied agent having a spoken conversation. "
+        "Answer in one to three short sentences of plain spoken English."
+    )
     fallback_text: str = "Sorry, I can't reach my language model right now. Could you say that again in a moment?"
 
     def __post_init__(self):
         _require(self.timeout_s > 0, "responder.timeout_s", f"must be > 0, got {self.timeout_s}")
-        _require(self.url.startswith(("http://", "https://")), "responder.url",
-                 f"must be an http(s) URL, got {self.url!r}")
+        _require(
+            self.url.startswith(("http://", "https://")), "responder.url", f"must be an http(s) URL, got {self.url!r}"
+        )
 
 
 @dataclass(frozen=True)
 class PlaybackConfig:
     """The agent speaks a recording; text tokens from `transcript` (whisper json, TextGrid or plain text)."""
 
-    speak: Optional[str] = None
-    transcript: Optional[str] = None
+    speak: str | None = None
+    transcript: str | None = None
     start_s: float = 0.0  # when the agent starts speaking, from the first step
 
 
@@ -109,11 +116,11 @@ class PlaybackConfig:
 class MoshiConfig:
     """Local files only: the LM weights, Mimi weights and the sentencepiece text tokenizer."""
 
-    lm_weights: Optional[str] = None  # e.g. model.safetensors
-    mimi_weights: Optional[str] = None  # e.g. tokenizer-e351c8d8-checkpoint125.safetensors
-    tokenizer: Optional[str] = None  # e.g. tokenizer_spm_32k_3.model
-    lm_config: Optional[str] = None  # a json of LM kwargs for non-default model sizes (None: Moshi 7B)
-    mimi_config: Optional[str] = None  # a json of Mimi kwargs (None: the released Mimi)
+    lm_weights: str | None = None  # e.g. model.safetensors
+    mimi_weights: str | None = None  # e.g. tokenizer-e351c8d8-checkpoint125.safetensors
+    tokenizer: str | None = None  # e.g. tokenizer_spm_32k_3.model
+    lm_config: str | None = None  # a json of LM kwargs for non-default model sizes (None: Moshi 7B)
+    mimi_config: str | None = None  # a json of Mimi kwargs (None: the released Mimi)
     device: str = "cpu"
     temp: float = 0.8
     temp_text: float = 0.7
@@ -130,7 +137,7 @@ class MoshiConfig:
 class DialogueConfig:
     backend: Literal["local", "moshi", "playback"] = "local"
     barge_in_s: float = 0.3  # user speech over the agent longer than this stops the agent
-    speech_tokenizer: Optional[str] = None  # None: checkpoints/speech_tokenizer/speech_tokenizer.safetensors
+    speech_tokenizer: str | None = None  # None: ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
     transcript_name: str = "transcript.json"
     vad: VadConfig = field(default_factory=VadConfig)
     echo: EchoConfig = field(default_factory=EchoConfig)
@@ -142,5 +149,8 @@ class DialogueConfig:
 
     def __post_init__(self):
         _require(0 < self.barge_in_s <= 5.0, "barge_in_s", f"must be in (0, 5], got {self.barge_in_s}")
-        _require(self.backend != "playback" or self.playback.speak is not None, "playback.speak",
-                 "the playback backend needs a recording to speak (--speak FILE)")
+        _require(
+            self.backend != "playback" or self.playback.speak is not None,
+            "playback.speak",
+            "the playback backend needs a recording to speak (--speak FILE)",
+        )

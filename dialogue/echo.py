@@ -32,7 +32,7 @@ class EchoGate:
 
     def push_reference(self, played: np.ndarray) -> None:
         """Append the agent audio just sent to the loudspeaker (same rate as the mic)."""
-        self._ref = np.concatenate([self._ref[len(played):], np.asarray(played, np.float32)])
+        self._ref = np.concatenate([self._ref[len(played) :], np.asarray(played, np.float32)])
 
     def process(self, mic: np.ndarray) -> tuple[np.ndarray, bool]:
         """mic block (N,) -> (mic, user_dominant): whether the block may count as user speech."""

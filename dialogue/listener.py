@@ -4,13 +4,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.messages import VadState
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.asr import RecognizedWord, StreamingAsr
 from dialogue.config import AsrConfig, EchoConfig, VadConfig
 from dialogue.echo import EchoGate
 from dialogue.resample import StreamResampler
 from dialogue.vad import VAD_CHUNK_S, VAD_RATE_HZ, SileroVad, VadEvent, VadStateMachine
+from ecas.core.messages import VadState
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 STEP_S = STEP_SAMPLES / SAMPLE_RATE_HZ
 STEP_16K = STEP_SAMPLES * VAD_RATE_HZ // SAMPLE_RATE_HZ  # 1280
@@ -39,10 +39,19 @@ class UserListener:
         self.vad = SileroVad()
         self.turns = VadStateMachine(vad.start_threshold, vad.stop_threshold, vad.start_s, vad.stop_s)
         self.echo = EchoGate(VAD_RATE_HZ, echo.max_delay_s, echo.margin_db, STEP_16K) if echo.mode == "gate" else None
-        self.asr = None if asr is None else StreamingAsr(
-            asr.hmm, asr.lm, asr.dict, budget_samples=int(asr.budget_steps * STEP_16K),
-            max_hmm_per_frame=asr.max_hmm_per_frame, max_words_per_frame=asr.max_words_per_frame,
-            phone_lookahead_frames=asr.phone_lookahead_frames)
+        self.asr = (
+            None
+            if asr is None
+            else StreamingAsr(
+                asr.hmm,
+                asr.lm,
+                asr.dict,
+                budget_samples=int(asr.budget_steps * STEP_16K),
+                max_hmm_per_frame=asr.max_hmm_per_frame,
+                max_words_per_frame=asr.max_words_per_frame,
+                phone_lookahead_frames=asr.phone_lookahead_frames,
+            )
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -71,7 +80,7 @@ class UserListener:
             if agent_pcm_played is not None:
                 self.echo.push_reference(self.resample_agent.process(agent_pcm_played))
             mic, user_dominant = self.echo.process(mic)
-        self._history = np.concatenate([self._history[len(mic):], mic])
+        self._history = np.concatenate([self._history[len(mic) :], mic])
         self._t_s += len(mic) / VAD_RATE_HZ
         events = []
         already_listening = self.asr is not None and self.asr.active  # a new utterance's pre-roll holds this block
@@ -86,10 +95,16 @@ class UserListener:
         if already_listening:
             self.asr.feed(mic)
         final = self.asr.advance() if self.asr is not None else None
-        return Heard(vad_prob=self._prob, vad_state=self.turns.state,
-                     speech_run_s=0.0 if self._run_start_s is None else self._chunk_t_s - self._run_start_s,
-                     partial=self.asr.partial if self.asr is not None else "", events=events, final_words=final,
-                     turn_start_s=self._turn_start_s, turn_end_s=self._turn_end_s)
+        return Heard(
+            vad_prob=self._prob,
+            vad_state=self.turns.state,
+            speech_run_s=0.0 if self._run_start_s is None else self._chunk_t_s - self._run_start_s,
+            partial=self.asr.partial if self.asr is not None else "",
+            events=events,
+            final_words=final,
+            turn_start_s=self._turn_start_s,
+            turn_end_s=self._turn_end_s,
+        )
 
     def _track_speech_run(self) -> None:
         if self.turns.state in (VadState.STARTING, VadState.SPEAKING):
@@ -104,7 +119,7 @@ class UserListener:
             if self.asr is not None:
                 begin_s = max(0.0, event.t_s - PREROLL_S, self._t_s - HISTORY_S)
                 n_back = int(round((self._t_s - begin_s) * VAD_RATE_HZ))
-                self.asr.begin(self._t_s - n_back / VAD_RATE_HZ, self._history[len(self._history) - n_back:])
+                self.asr.begin(self._t_s - n_back / VAD_RATE_HZ, self._history[len(self._history) - n_back :])
         elif event.kind == "end":
             self._turn_end_s = event.t_s
             if self.asr is not None:

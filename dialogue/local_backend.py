@@ -10,16 +10,16 @@ from pathlib import Path
 
 import numpy as np
 
-from core.messages import DialogueStep, VadState
-from core.timing import STEP_SAMPLES
 from dialogue.config import DialogueConfig
-from dialogue.listener import Heard, ListeningBackend, STEP_S, UserListener
+from dialogue.listener import STEP_S, Heard, ListeningBackend, UserListener
 from dialogue.responder import Reply, Responder, build_responder
 from dialogue.speaker import Speaker, SpokenStep
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, StreamingSpeechEncoder
 from dialogue.text_vocab import LOCAL_SPEC
 from dialogue.transcript import Transcript, Turn, Word
 from dialogue.tts import EspeakTts
+from ecas.core.messages import DialogueStep, VadState
+from ecas.core.timing import STEP_SAMPLES
 
 
 def check_user_pcm(user_pcm: np.ndarray) -> np.ndarray:
@@ -30,14 +30,29 @@ def check_user_pcm(user_pcm: np.ndarray) -> np.ndarray:
     return np.nan_to_num(pcm, nan=0.0, posinf=1.0, neginf=-1.0)
 
 
-def step_message(user_pcm: np.ndarray, heard: Heard, spoken: SpokenStep, agent_codes: StreamingSpeechEncoder,
-                 user_codes: StreamingSpeechEncoder, user_words: str) -> DialogueStep:
+def step_message(
+    user_pcm: np.ndarray,
+    heard: Heard,
+    spoken: SpokenStep,
+    agent_codes: StreamingSpeechEncoder,
+    user_codes: StreamingSpeechEncoder,
+    user_words: str,
+) -> DialogueStep:
     """The step's message: both voices, their speech codes, the agent's text token, what was heard."""
     return DialogueStep(
-        agent_pcm=spoken.pcm, user_pcm=user_pcm, agent_codes=agent_codes.step(spoken.pcm),
-        user_codes=user_codes.step(user_pcm), text_token=spoken.text_token, text_piece=spoken.text_piece,
-        user_vad_prob=heard.vad_prob, user_vad_state=heard.vad_state, agent_speaking=spoken.speaking,
-        user_partial=heard.partial, user_words=user_words, agent_interrupted=spoken.interrupted)
+        agent_pcm=spoken.pcm,
+        user_pcm=user_pcm,
+        agent_codes=agent_codes.step(spoken.pcm),
+        user_codes=user_codes.step(user_pcm),
+        text_token=spoken.text_token,
+        text_piece=spoken.text_piece,
+        user_vad_prob=heard.vad_prob,
+        user_vad_state=heard.vad_state,
+        agent_speaking=spoken.speaking,
+        user_partial=heard.partial,
+        user_words=user_words,
+        agent_interrupted=spoken.interrupted,
+    )
 
 
 def load_speech_tokenizer(path: str | None) -> SpeechTokenizer:
@@ -54,8 +69,14 @@ def user_turn_from(heard: Heard, transcript: Transcript) -> Turn:
 class LocalBackend(ListeningBackend):
     spec = LOCAL_SPEC
 
-    def __init__(self, listener: UserListener, tts: EspeakTts, responder: Responder, tokenizer: SpeechTokenizer,
-                 barge_in_s: float):
+    def __init__(
+        self,
+        listener: UserListener,
+        tts: EspeakTts,
+        responder: Responder,
+        tokenizer: SpeechTokenizer,
+        barge_in_s: float,
+    ):
         self.transcript = Transcript("local")
         self.listener = listener
         self.speaker = Speaker(self.transcript, tts.synthesize)
@@ -68,13 +89,26 @@ class LocalBackend(ListeningBackend):
     @classmethod
     def from_config(cls, cfg: DialogueConfig, seed: int = 0) -> "LocalBackend":
         r = cfg.responder
-        responder = build_responder(r.kind, seed, url=r.url, model=r.model, timeout_s=r.timeout_s,
-                                    max_tokens=r.max_tokens, system_prompt=r.system_prompt,
-                                    fallback_text=r.fallback_text, api_key_env=r.api_key_env)
+        responder = build_responder(
+            r.kind,
+            seed,
+            url=r.url,
+            model=r.model,
+            timeout_s=r.timeout_s,
+            max_tokens=r.max_tokens,
+            system_prompt=r.system_prompt,
+            fallback_text=r.fallback_text,
+            api_key_env=r.api_key_env,
+        )
         tts = EspeakTts(cfg.tts.voice, cfg.tts.rate_wpm, cfg.tts.pitch)
         tts.synthesize("Hello.")  # loads the voice now, and fails early on a bad one
-        backend = cls(UserListener(cfg.vad, cfg.echo, cfg.asr), tts, responder,
-                      load_speech_tokenizer(cfg.speech_tokenizer), cfg.barge_in_s)
+        backend = cls(
+            UserListener(cfg.vad, cfg.echo, cfg.asr),
+            tts,
+            responder,
+            load_speech_tokenizer(cfg.speech_tokenizer),
+            cfg.barge_in_s,
+        )
         backend.warm_up()
         return backend
 
@@ -141,8 +175,11 @@ class LocalBackend(ListeningBackend):
 
     def _user_takes_the_turn(self, heard: Heard) -> bool:
         """User speech for barge_in_s while a reply is playing or pending."""
-        return (self.speaker.busy and heard.vad_state in (VadState.STARTING, VadState.SPEAKING)
-                and heard.speech_run_s >= self.barge_in_s)
+        return (
+            self.speaker.busy
+            and heard.vad_state in (VadState.STARTING, VadState.SPEAKING)
+            and heard.speech_run_s >= self.barge_in_s
+        )
 
     def _barge_in(self, t_s: float) -> SpokenStep:
         """Stop the agent at this step, drop its reply, and answer the user's turn when it ends."""

@@ -12,16 +12,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.messages import DialogueStep
-from core.spec import ConditionSpec
 from dialogue.config import DialogueConfig, MoshiConfig
-from dialogue.listener import ListeningBackend, STEP_S, UserListener
+from dialogue.listener import STEP_S, ListeningBackend, UserListener
 from dialogue.local_backend import check_user_pcm, user_turn_from
 from dialogue.transcript import Transcript, Turn, Word
+from ecas.core.messages import DialogueStep
+from ecas.core.spec import ConditionSpec
 
 N_CODES = 8
-EXPECTED_FILES = {"lm_weights": "model.safetensors", "mimi_weights": "tokenizer-e351c8d8-checkpoint125.safetensors",
-                  "tokenizer": "tokenizer_spm_32k_3.model"}
+EXPECTED_FILES = {
+    "lm_weights": "model.safetensors",
+    "mimi_weights": "tokenizer-e351c8d8-checkpoint125.safetensors",
+    "tokenizer": "tokenizer_spm_32k_3.model",
+}
 TEXT_SKIP_IDS = (0, 3)  # Moshi's end-of-padding and padding text tokens carry no word
 SPEAKING_RMS = 0.01
 AGENT_TURN_GAP_S = 1.2  # silence in Moshi's text stream that closes an agent turn
@@ -43,7 +46,9 @@ def check_moshi_files(cfg: MoshiConfig) -> dict[str, Path]:
     if missing:
         raise MoshiWeightsError(
             "the moshi backend needs Moshi's weights as local files (nothing is downloaded at run time); missing: "
-            + "; ".join(missing) + ". Get them from the kyutai/moshiko-pytorch-bf16 release and set these options.")
+            + "; ".join(missing)
+            + ". Get them from the kyutai/moshiko-pytorch-bf16 release and set these options."
+        )
     return paths
 
 
@@ -57,16 +62,34 @@ def _read_json(path: str | None) -> dict | None:
 
 
 class MoshiBackend(ListeningBackend):
-    def __init__(self, mimi, lm, text_tokenizer, listener: UserListener, temp: float, temp_text: float, top_k: int,
-                 top_k_text: int, cfg_coef: float, device: str = "cpu"):
+    def __init__(
+        self,
+        mimi,
+        lm,
+        text_tokenizer,
+        listener: UserListener,
+        temp: float,
+        temp_text: float,
+        top_k: int,
+        top_k_text: int,
+        cfg_coef: float,
+        device: str = "cpu",
+    ):
         from moshi.models import LMGen
 
         self.device = torch.device(device)
         self.mimi, self.lm, self.text_tokenizer, self.listener = mimi, lm, text_tokenizer, listener
         self.spec = moshi_spec(lm)
         no_text_cfg = cfg_coef != 1.0 and lm.fuser is None
-        self.lm_gen = LMGen(lm, temp=temp, temp_text=temp_text, top_k=top_k, top_k_text=top_k_text,
-                            cfg_coef=cfg_coef, cfg_is_no_text=no_text_cfg)
+        self.lm_gen = LMGen(
+            lm,
+            temp=temp,
+            temp_text=temp_text,
+            top_k=top_k,
+            top_k_text=top_k_text,
+            cfg_coef=cfg_coef,
+            cfg_is_no_text=no_text_cfg,
+        )
         self.mimi.streaming_forever(1)
         self.lm_gen.streaming_forever(1)
         self.transcript = Transcript("moshi")
@@ -91,12 +114,23 @@ class MoshiBackend(ListeningBackend):
         lm_kwargs = _read_json(m.lm_config)
         n_codebooks = N_CODES if lm_kwargs is None else max(lm_kwargs["dep_q"], lm_kwargs["n_q"] - lm_kwargs["dep_q"])
         dtype = torch.bfloat16 if m.device.startswith("cuda") else torch.float32
-        mimi = loaders.get_mimi(files["mimi_weights"], _read_json(m.mimi_config), device=m.device,
-                                num_codebooks=n_codebooks)
+        mimi = loaders.get_mimi(
+            files["mimi_weights"], _read_json(m.mimi_config), device=m.device, num_codebooks=n_codebooks
+        )
         lm = loaders.get_moshi_lm(files["lm_weights"], lm_kwargs, device=m.device, dtype=dtype)
         tokenizer = sentencepiece.SentencePieceProcessor(str(files["tokenizer"]))
-        return cls(mimi, lm, tokenizer, UserListener(cfg.vad, cfg.echo, cfg.asr), m.temp, m.temp_text, m.top_k,
-                   m.top_k_text, m.cfg_coef, m.device)
+        return cls(
+            mimi,
+            lm,
+            tokenizer,
+            UserListener(cfg.vad, cfg.echo, cfg.asr),
+            m.temp,
+            m.temp_text,
+            m.top_k,
+            m.top_k_text,
+            m.cfg_coef,
+            m.device,
+        )
 
     def reset(self) -> None:
         self.mimi.reset_streaming()
@@ -126,7 +160,7 @@ class MoshiBackend(ListeningBackend):
             user_codes = self.mimi.encode(x)  # (1, 8, 1)
             out = self.lm_gen.step(user_codes)  # None during LMGen's delay warm-up, else (1, 1 + 8, 1)
             if out is not None:
-                codes = out[:, 1:1 + N_CODES]  # (1, 8, 1)
+                codes = out[:, 1 : 1 + N_CODES]  # (1, 8, 1)
                 agent_pcm = self.mimi.decode(codes)[0, 0].float().cpu().numpy().astype(np.float32)  # (1920,)
         if out is not None:
             text_token = int(out[0, 0, 0])
@@ -135,11 +169,19 @@ class MoshiBackend(ListeningBackend):
         self._last_agent_pcm = agent_pcm
         self._step_index += 1
         return DialogueStep(
-            agent_pcm=agent_pcm, user_pcm=user_pcm, agent_codes=agent_codes,
-            user_codes=user_codes[0, :, 0].cpu().numpy().astype(np.int32), text_token=text_token, text_piece=piece,
-            user_vad_prob=heard.vad_prob, user_vad_state=heard.vad_state,
-            agent_speaking=bool(np.sqrt(np.mean(agent_pcm ** 2)) > SPEAKING_RMS), user_partial=heard.partial,
-            user_words=" ".join(w.word for w in heard.final_words or []), agent_interrupted=False)
+            agent_pcm=agent_pcm,
+            user_pcm=user_pcm,
+            agent_codes=agent_codes,
+            user_codes=user_codes[0, :, 0].cpu().numpy().astype(np.int32),
+            text_token=text_token,
+            text_piece=piece,
+            user_vad_prob=heard.vad_prob,
+            user_vad_state=heard.vad_state,
+            agent_speaking=bool(np.sqrt(np.mean(agent_pcm**2)) > SPEAKING_RMS),
+            user_partial=heard.partial,
+            user_words=" ".join(w.word for w in heard.final_words or []),
+            agent_interrupted=False,
+        )
 
     def _text_piece(self, token: int, t_s: float) -> str:
         """The word piece of a text token (sentencepiece '▁' marks a word start); extends the agent transcript."""

@@ -9,18 +9,18 @@ from pathlib import Path
 
 import numpy as np
 
-from core.audio_file import load_audio
-from core.messages import DialogueStep
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.alignment import recognize, words_from_transcript
 from dialogue.config import DialogueConfig
-from dialogue.listener import ListeningBackend, STEP_S, UserListener
+from dialogue.listener import STEP_S, ListeningBackend, UserListener
 from dialogue.local_backend import check_user_pcm, load_speech_tokenizer, step_message, user_turn_from
 from dialogue.speaker import Speaker
 from dialogue.speech_tokenizer import SpeechTokenizer, StreamingSpeechEncoder
 from dialogue.text_vocab import LOCAL_SPEC
 from dialogue.transcript import Transcript
 from dialogue.tts import Utterance, WordTiming
+from ecas.core.audio_file import load_audio
+from ecas.core.messages import DialogueStep
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 
 def recording_utterance(path: str, transcript: str | None) -> Utterance:
@@ -29,8 +29,11 @@ def recording_utterance(path: str, transcript: str | None) -> Utterance:
         words = words_from_transcript(Path(transcript), pcm, SAMPLE_RATE_HZ)
     else:
         words = recognize(pcm, SAMPLE_RATE_HZ)
-    timings = tuple(WordTiming(w.word, int(round(w.start_s * SAMPLE_RATE_HZ))) for w in words
-                    if 0 <= w.start_s * SAMPLE_RATE_HZ < len(pcm))
+    timings = tuple(
+        WordTiming(w.word, int(round(w.start_s * SAMPLE_RATE_HZ)))
+        for w in words
+        if 0 <= w.start_s * SAMPLE_RATE_HZ < len(pcm)
+    )
     return Utterance(text=" ".join(w.word for w in words), pcm=pcm, words=timings)
 
 
@@ -48,8 +51,12 @@ class PlaybackBackend(ListeningBackend):
     @classmethod
     def from_config(cls, cfg: DialogueConfig, seed: int = 0) -> "PlaybackBackend":
         p = cfg.playback
-        backend = cls(recording_utterance(p.speak, p.transcript), UserListener(cfg.vad, cfg.echo, cfg.asr),
-                      load_speech_tokenizer(cfg.speech_tokenizer), p.start_s)
+        backend = cls(
+            recording_utterance(p.speak, p.transcript),
+            UserListener(cfg.vad, cfg.echo, cfg.asr),
+            load_speech_tokenizer(cfg.speech_tokenizer),
+            p.start_s,
+        )
         backend.step(np.zeros(STEP_SAMPLES, np.float32))  # warm-up: the first calls of each model are slow
         backend.reset()
         return backend

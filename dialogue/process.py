@@ -1,14 +1,14 @@
 """The dialogue stage: audio.user -> dialogue.step, and the run's transcript.json."""
 
 import logging
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 
-from core.messages import AudioUser, Message
-from core.component import RunContext
 from dialogue.backend import DialogueBackend, build_backend
 from dialogue.config import DialogueConfig
+from ecas.core.component import RunContext
+from ecas.core.messages import AudioUser, Message
 
 log = logging.getLogger(__name__)
 TRANSCRIPT_EVERY_STEPS = 25  # rewrite transcript.json about every 2 s, so a crash still leaves one

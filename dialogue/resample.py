@@ -48,7 +48,7 @@ class StreamResampler:
         n_ready = (self._n_in - 1) * self.up // self.down + 1
         y = upfirdn(self.taps, x, self.up, self.down)  # local output 0 = global output tail_start*up/down
         first_local = self._n_out - self._tail_start * self.up // self.down
-        out = y[first_local: first_local + n_ready - self._n_out]
+        out = y[first_local : first_local + n_ready - self._n_out]
         self._n_out = n_ready
         self._keep_tail(x)
         return out.astype(np.float32)
@@ -57,5 +57,5 @@ class StreamResampler:
         """Keep enough input for the next outputs; the tail start stays a multiple of `down` so phases align."""
         new_start = max(0, self._n_in - self._history_samples)
         new_start -= new_start % self.down
-        self._tail = x[new_start - self._tail_start:]
+        self._tail = x[new_start - self._tail_start :]
         self._tail_start = new_start

@@ -63,76 +63,296 @@ def split_sentences(text: str) -> list[str]:
 
 # ----------------------------------------------------------------------------------------------- rules
 
-_STOPWORDS = set("""a an the and or but if then so of to in on at by for with from up down out over under again
-i me my mine myself we our ours you your yours he him his she her hers it its they them their what which who whom
-this that these those am is are was were be been being have has had having do does did doing would should could
-can will just not no nor only own same too very s t don now there here when where why how all any both each few
-more most other some such than into through during before after above below between off once mr mrs miss yes
-yeah okay ok oh um uh hmm well really also about like get got go going know think say said one two
-consider want need make take see look come tell give find feel try leave call might must may let put
-keep seem""".split())
+_STOPWORDS = set(
+    [
+        "a",
+        "an",
+        "the",
+        "and",
+        "or",
+        "but",
+        "if",
+        "then",
+        "so",
+        "of",
+        "to",
+        "in",
+        "on",
+        "at",
+        "by",
+        "for",
+        "with",
+        "from",
+        "up",
+        "down",
+        "out",
+        "over",
+        "under",
+        "again",
+        "i",
+        "me",
+        "my",
+        "mine",
+        "myself",
+        "we",
+        "our",
+        "ours",
+        "you",
+        "your",
+        "yours",
+        "he",
+        "him",
+        "his",
+        "she",
+        "her",
+        "hers",
+        "it",
+        "its",
+        "they",
+        "them",
+        "their",
+        "what",
+        "which",
+        "who",
+        "whom",
+        "this",
+        "that",
+        "these",
+        "those",
+        "am",
+        "is",
+        "are",
+        "was",
+        "were",
+        "be",
+        "been",
+        "being",
+        "have",
+        "has",
+        "had",
+        "having",
+        "do",
+        "does",
+        "did",
+        "doing",
+        "would",
+        "should",
+        "could",
+        "can",
+        "will",
+        "just",
+        "not",
+        "no",
+        "nor",
+        "only",
+        "own",
+        "same",
+        "too",
+        "very",
+        "s",
+        "t",
+        "don",
+        "now",
+        "there",
+        "here",
+        "when",
+        "where",
+        "why",
+        "how",
+        "all",
+        "any",
+        "both",
+        "each",
+        "few",
+        "more",
+        "most",
+        "other",
+        "some",
+        "such",
+        "than",
+        "into",
+        "through",
+        "during",
+        "before",
+        "after",
+        "above",
+        "below",
+        "between",
+        "off",
+        "once",
+        "mr",
+        "mrs",
+        "miss",
+        "yes",
+        "yeah",
+        "okay",
+        "ok",
+        "oh",
+        "um",
+        "uh",
+        "hmm",
+        "well",
+        "really",
+        "also",
+        "about",
+        "like",
+        "get",
+        "got",
+        "go",
+        "going",
+        "know",
+        "think",
+        "say",
+        "said",
+        "one",
+        "two",
+        "consider",
+        "want",
+        "need",
+        "make",
+        "take",
+        "see",
+        "look",
+        "come",
+        "tell",
+        "give",
+        "find",
+        "feel",
+        "try",
+        "leave",
+        "call",
+        "might",
+        "must",
+        "may",
+        "let",
+        "put",
+        "keep",
+        "seem",
+    ]
+)
 
 _GREETINGS = {"hello", "hi", "hey", "morning", "evening", "afternoon", "greetings"}
 _FAREWELLS = {"bye", "goodbye", "farewell", "later", "goodnight"}
 _THANKS = {"thanks", "thank", "cheers", "appreciate"}
-_QUESTION_WORDS = {"what", "why", "how", "where", "when", "who", "which", "can", "could", "do", "does", "did",
-                   "is", "are", "will", "would", "should"}
+_QUESTION_WORDS = {
+    "what",
+    "why",
+    "how",
+    "where",
+    "when",
+    "who",
+    "which",
+    "can",
+    "could",
+    "do",
+    "does",
+    "did",
+    "is",
+    "are",
+    "will",
+    "would",
+    "should",
+}
 _TOPICS = {
     "weather": {"weather", "rain", "sunny", "sun", "cold", "hot", "snow", "warm", "wind", "raining"},
     "food": {"food", "eat", "eating", "dinner", "lunch", "breakfast", "cook", "cooking", "hungry", "pizza", "coffee"},
     "music": {"music", "song", "songs", "sing", "band", "guitar", "piano", "listen", "concert"},
     "work": {"work", "job", "office", "boss", "project", "meeting", "working", "career"},
-    "family": {"family", "mother", "father", "brother", "sister", "son", "daughter", "children", "kids", "wife",
-               "husband", "parents"},
+    "family": {
+        "family",
+        "mother",
+        "father",
+        "brother",
+        "sister",
+        "son",
+        "daughter",
+        "children",
+        "kids",
+        "wife",
+        "husband",
+        "parents",
+    },
     "travel": {"travel", "trip", "holiday", "vacation", "fly", "flight", "city", "country", "visit", "journey"},
     "books": {"book", "books", "read", "reading", "novel", "story", "chapter", "author"},
     "sport": {"sport", "football", "soccer", "tennis", "run", "running", "game", "match", "team", "play"},
     "money": {"money", "pay", "paid", "price", "cost", "income", "fortune", "rich", "poor", "pounds", "dollars"},
 }
 _RESPONSES = {
-    "greeting": ["Hello! It's nice to hear from you. How is your day going?",
-                 "Hi there! What's on your mind today?",
-                 "Hey! Good to see you. What shall we talk about?"],
-    "farewell": ["Goodbye! It was lovely talking with you.",
-                 "Take care, and talk to you soon.",
-                 "Bye for now. Have a great rest of your day."],
+    "greeting": [
+        "Hello! It's nice to hear from you. How is your day going?",
+        "Hi there! What's on your mind today?",
+        "Hey! Good to see you. What shall we talk about?",
+    ],
+    "farewell": [
+        "Goodbye! It was lovely talking with you.",
+        "Take care, and talk to you soon.",
+        "Bye for now. Have a great rest of your day.",
+    ],
     "thanks": ["You're very welcome.", "Any time, happy to help.", "My pleasure. Anything else?"],
-    "how_are_you": ["I'm doing well, thank you for asking. How about you?",
-                    "Pretty good! I've been enjoying our chat. And you?",
-                    "I'm great, thanks. What have you been up to?"],
-    "name": ["I'm a small conversational agent running right here on your computer.",
-             "You can call me Miburi. I listen, talk and move while we chat."],
+    "how_are_you": [
+        "I'm doing well, thank you for asking. How about you?",
+        "Pretty good! I've been enjoying our chat. And you?",
+        "I'm great, thanks. What have you been up to?",
+    ],
+    "name": [
+        "I'm a small conversational agent running right here on your computer.",
+        "You can call me Miburi. I listen, talk and move while we chat.",
+    ],
     "time": ["It's {time} right now.", "My clock says {time}."],
-    "weather": ["I can't look outside, but I hope the weather is kind to you. Is it nice where you are?",
-                "Weather can change a whole day's mood. Do you prefer sunny days or rainy ones?"],
-    "food": ["Food is one of life's great pleasures. What's your favourite thing to eat?",
-             "That sounds tasty. Do you like cooking yourself?"],
-    "music": ["Music is wonderful. What kind do you listen to most?",
-              "I love hearing about music. Is there a song you can't stop playing lately?"],
-    "work": ["Work can take a lot of energy. How are things going with it?",
-             "That sounds busy. What do you enjoy most about your work?"],
-    "family": ["Family matters a lot. Tell me more about them.",
-               "That's sweet. Do you get to spend much time together?"],
-    "travel": ["Travelling is exciting. Where would you most like to go next?",
-               "New places are great. What was the best trip you've taken?"],
-    "books": ["Stories are a great escape. What are you reading at the moment?",
-              "I like a good book too. Who is your favourite author?"],
+    "weather": [
+        "I can't look outside, but I hope the weather is kind to you. Is it nice where you are?",
+        "Weather can change a whole day's mood. Do you prefer sunny days or rainy ones?",
+    ],
+    "food": [
+        "Food is one of life's great pleasures. What's your favourite thing to eat?",
+        "That sounds tasty. Do you like cooking yourself?",
+    ],
+    "music": [
+        "Music is wonderful. What kind do you listen to most?",
+        "I love hearing about music. Is there a song you can't stop playing lately?",
+    ],
+    "work": [
+        "Work can take a lot of energy. How are things going with it?",
+        "That sounds busy. What do you enjoy most about your work?",
+    ],
+    "family": [
+        "Family matters a lot. Tell me more about them.",
+        "That's sweet. Do you get to spend much time together?",
+    ],
+    "travel": [
+        "Travelling is exciting. Where would you most like to go next?",
+        "New places are great. What was the best trip you've taken?",
+    ],
+    "books": [
+        "Stories are a great escape. What are you reading at the moment?",
+        "I like a good book too. Who is your favourite author?",
+    ],
     "sport": ["Do you play yourself, or mostly watch?", "Sport is a great way to unwind. Which team do you follow?"],
-    "money": ["Money questions are rarely simple. What would you do with a small fortune?",
-              "That's a practical concern. Have you found a plan that works for you?"],
-    "question": ["That's a good question about {topic}. I'm not sure, but what do you think?",
-                 "Hmm, {topic}. I'd love to hear your own view on that first.",
-                 "I don't have a definite answer about {topic}. What made you wonder?"],
-    "keyword": ["You mentioned {topic}. Tell me more about that.",
-                "{Topic}, interesting. What happened next?",
-                "I see, {topic}. How do you feel about it?",
-                "That sounds important. Why does {topic} matter to you?"],
+    "money": [
+        "Money questions are rarely simple. What would you do with a small fortune?",
+        "That's a practical concern. Have you found a plan that works for you?",
+    ],
+    "question": [
+        "That's a good question about {topic}. I'm not sure, but what do you think?",
+        "Hmm, {topic}. I'd love to hear your own view on that first.",
+        "I don't have a definite answer about {topic}. What made you wonder?",
+    ],
+    "keyword": [
+        "You mentioned {topic}. Tell me more about that.",
+        "{Topic}, interesting. What happened next?",
+        "I see, {topic}. How do you feel about it?",
+        "That sounds important. Why does {topic} matter to you?",
+    ],
     "yes": ["Great. Tell me more.", "Good to hear. What else?"],
     "no": ["Okay, fair enough. What would you rather talk about?", "No problem. Is there something else on your mind?"],
-    "long": ["That was quite a story. The part about {topic} stood out to me. What happened after that?",
-             "Thanks for telling me all that. I'm curious about {topic}. Could you say more?"],
-    "unclear": ["Sorry, I didn't quite catch that. Could you say it again?",
-                "I missed that, I'm afraid. One more time?"],
+    "long": [
+        "That was quite a story. The part about {topic} stood out to me. What happened after that?",
+        "Thanks for telling me all that. I'm curious about {topic}. Could you say more?",
+    ],
+    "unclear": [
+        "Sorry, I didn't quite catch that. Could you say it again?",
+        "I missed that, I'm afraid. One more time?",
+    ],
 }
 
 
@@ -200,21 +420,33 @@ def _topic_word(words: list[str]) -> str | None:
 
 # ------------------------------------------------------------------------------------------- endpoint
 
+
 class OpenAIChatResponder:
     """Streams /v1/chat/completions (server-sent events) in a thread; keeps a short conversation history."""
 
     HISTORY_TURNS = 6
 
-    def __init__(self, url: str, model: str, timeout_s: float, max_tokens: int, system_prompt: str,
-                 fallback_text: str, api_key: str | None = None):
+    def __init__(
+        self,
+        url: str,
+        model: str,
+        timeout_s: float,
+        max_tokens: int,
+        system_prompt: str,
+        fallback_text: str,
+        api_key: str | None = None,
+    ):
         self.url, self.model, self.timeout_s, self.max_tokens = url, model, timeout_s, max_tokens
         self.system_prompt, self.fallback_text, self.api_key = system_prompt, fallback_text, api_key
         self._history: list[dict] = []
 
     def start(self, user_text: str) -> Reply:
         reply = Reply()
-        messages = [{"role": "system", "content": self.system_prompt}, *self._history,
-                    {"role": "user", "content": user_text or "(unintelligible)"}]
+        messages = [
+            {"role": "system", "content": self.system_prompt},
+            *self._history,
+            {"role": "user", "content": user_text or "(unintelligible)"},
+        ]
         threading.Thread(target=self._run, args=(messages, reply), daemon=True, name="chat-endpoint").start()
         return reply
 
@@ -232,12 +464,14 @@ class OpenAIChatResponder:
         if not said:
             reply.put(self.fallback_text)
         self._history = (self._history + [messages[-1], {"role": "assistant", "content": " ".join(said)}])[
-            -2 * self.HISTORY_TURNS:]
+            -2 * self.HISTORY_TURNS :
+        ]
         reply.close()
 
     def _stream_sentences(self, messages: list[dict], reply: Reply):
-        body = json.dumps({"model": self.model, "messages": messages, "stream": True,
-                           "max_tokens": self.max_tokens}).encode()
+        body = json.dumps(
+            {"model": self.model, "messages": messages, "stream": True, "max_tokens": self.max_tokens}
+        ).encode()
         headers = {"Content-Type": "application/json", "Accept": "text/event-stream"}
         if self.api_key:
             headers["Authorization"] = f"Bearer {self.api_key}"

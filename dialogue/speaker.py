@@ -6,15 +6,15 @@ time each word started; a barge-in cuts the reply at the current step and marks 
 """
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.text_vocab import word_token
 from dialogue.transcript import Transcript, Turn, Word
 from dialogue.tts import Utterance
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 FADE_SAMPLES = SAMPLE_RATE_HZ // 200  # 5 ms fade-out when cut
 SILENCE_LEVEL = 1e-3
@@ -31,8 +31,12 @@ class SpokenStep:
 
 
 class Speaker:
-    def __init__(self, transcript: Transcript, synthesize: Callable[[str], Utterance] | None = None,
-                 token_of: Callable[[str], int] = word_token):
+    def __init__(
+        self,
+        transcript: Transcript,
+        synthesize: Callable[[str], Utterance] | None = None,
+        token_of: Callable[[str], int] = word_token,
+    ):
         self.transcript = transcript
         self._synthesize = synthesize
         self._token_of = token_of

@@ -19,10 +19,10 @@ from einops import rearrange
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from ecas.core.paths import CHECKPOINTS_DIR
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
-DEFAULT_CHECKPOINT = (Path(__file__).resolve().parents[1] / "checkpoints" / "speech_tokenizer"
-                      / "speech_tokenizer.safetensors")
+DEFAULT_CHECKPOINT = CHECKPOINTS_DIR / "speech_tokenizer" / "speech_tokenizer.safetensors"
 
 
 @dataclass(frozen=True)
@@ -46,8 +46,9 @@ class CausalLogMel(nn.Module):
     def __init__(self, shape: TokenizerShape):
         super().__init__()
         self.shape = shape
-        mel = librosa.filters.mel(sr=SAMPLE_RATE_HZ, n_fft=shape.window_samples, n_mels=shape.n_mels,
-                                  fmin=50, fmax=8000)
+        mel = librosa.filters.mel(
+            sr=SAMPLE_RATE_HZ, n_fft=shape.window_samples, n_mels=shape.n_mels, fmin=50, fmax=8000
+        )
         self.register_buffer("mel_basis", torch.from_numpy(mel).float(), persistent=False)  # (M, F)
         self.register_buffer("window", torch.hann_window(shape.window_samples), persistent=False)
 
@@ -69,7 +70,7 @@ class ResidualVQ(nn.Module):
         """z (N, D) -> codes (N, Q)."""
         residual, codes = z, []
         for book in self.codebooks:  # (K, D)
-            dist = (residual.pow(2).sum(-1, keepdim=True) - 2 * residual @ book.T + book.pow(2).sum(-1))  # (N, K)
+            dist = residual.pow(2).sum(-1, keepdim=True) - 2 * residual @ book.T + book.pow(2).sum(-1)  # (N, K)
             idx = dist.argmin(-1)
             codes.append(idx)
             residual = residual - book[idx]
@@ -134,7 +135,8 @@ class SpeechTokenizer(nn.Module):
         if not path.is_file():
             raise FileNotFoundError(
                 f"speech tokenizer checkpoint not found: {path} "
-                "(train one with `python -m dialogue.train_speech_tokenizer`)")
+                "(train one with `python -m dialogue.train_speech_tokenizer`)"
+            )
         with safe_open(str(path), "pt") as f:
             shape = TokenizerShape(**json.loads(f.metadata()["shape"]))
         model = cls(shape)
@@ -159,6 +161,6 @@ class StreamingSpeechEncoder:
         if pcm.shape != (STEP_SAMPLES,):
             raise ValueError(f"speech tokenizer step expects ({STEP_SAMPLES},) samples, got {pcm.shape}")
         padded = torch.cat([self._history, torch.from_numpy(np.ascontiguousarray(pcm, np.float32))[None]], -1)
-        self._history = padded[:, -self.model.history_samples():]
+        self._history = padded[:, -self.model.history_samples() :]
         latent, self._hidden = self.model.encode_latent(self.model.step_features(padded), self._hidden)  # (1, 1, D)
         return self.model.rvq.encode(latent[0]).reshape(-1).numpy().astype(np.int32)

@@ -8,13 +8,14 @@ TTS's word maps to a valid id; collisions (rare for a conversational vocabulary)
 import hashlib
 import re
 
-from core.spec import ConditionSpec
+from ecas.core.spec import ConditionSpec
 
 TEXT_VOCAB_SIZE = 8192
 SPEECH_CODE_BINS = 256
 LOCAL_EMBED_DIM = 256
-LOCAL_SPEC = ConditionSpec(name="local-v1", text_vocab=TEXT_VOCAB_SIZE, audio_card=SPEECH_CODE_BINS,
-                           embed_dim=LOCAL_EMBED_DIM)
+LOCAL_SPEC = ConditionSpec(
+    name="local-v1", text_vocab=TEXT_VOCAB_SIZE, audio_card=SPEECH_CODE_BINS, embed_dim=LOCAL_EMBED_DIM
+)
 _NON_WORD = re.compile(r"[^a-z0-9']+")
 
 

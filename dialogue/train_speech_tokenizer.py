@@ -1,6 +1,6 @@
 """Train the small causal speech tokenizer on espeak-ng voices and the real recordings in ../shared/data.
 
-    nice -n 10 python -m dialogue.train_speech_tokenizer --out checkpoints/speech_tokenizer/speech_tokenizer.safetensors
+    nice -n 10 python -m dialogue.train_speech_tokenizer --out ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
 
 Objective: log-mel reconstruction (L1) through an 8-level EMA residual VQ with quantizer dropout,
 plus a commitment term. Held out: librivox_0870.wav (real read speech) and unseen espeak sentences.
@@ -17,16 +17,29 @@ import torch
 from einops import rearrange
 from scipy.signal import resample_poly
 
-from core.threads import limit_threads
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, TokenizerShape
 from dialogue.tts import EspeakTts
+from ecas.core.paths import data_root
+from ecas.core.threads import limit_threads
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED_DATA = data_root()
 TRAIN_RECORDINGS = ("beat2/2_scott_0_1_1.wav",)
 HELDOUT_RECORDINGS = ("speech/librivox_0870.wav",)
-VOICES = ("en-us", "en", "en-us+f3", "en-us+m3", "en+f2", "en-gb-x-rp+m7", "en-us+f5", "en-us+klatt",
-          "en-gb-scotland+m1", "en-029+f1", "en-us+grandma", "en-us+david")
+VOICES = (
+    "en-us",
+    "en",
+    "en-us+f3",
+    "en-us+m3",
+    "en+f2",
+    "en-gb-x-rp+m7",
+    "en-us+f5",
+    "en-us+klatt",
+    "en-gb-scotland+m1",
+    "en-029+f1",
+    "en-us+grandma",
+    "en-us+david",
+)
 HELDOUT_VOICES = ("en-us+f4", "en-gb-x-rp+m5")
 EMA_DECAY = 0.99
 COMMIT_WEIGHT = 0.25
@@ -52,8 +65,9 @@ def synthesize_corpus(rng: np.random.Generator, voices, n_sentences: int) -> np.
     """espeak-ng sentences with random voice, rate and pitch, separated by short silences."""
     pieces = []
     for sentence in random_sentences(rng, n_sentences):
-        tts = EspeakTts(voice=str(rng.choice(voices)), rate_wpm=int(rng.integers(120, 230)),
-                        pitch=int(rng.integers(15, 90)))
+        tts = EspeakTts(
+            voice=str(rng.choice(voices)), rate_wpm=int(rng.integers(120, 230)), pitch=int(rng.integers(15, 90))
+        )
         pieces += [tts.synthesize(sentence).pcm, np.zeros(int(rng.integers(0, SAMPLE_RATE_HZ // 2)), np.float32)]
     return np.concatenate(pieces)
 
@@ -66,7 +80,7 @@ def random_crops(rng, sources: list[np.ndarray], batch: int, steps: int) -> torc
     for _ in range(batch):
         src = sources[rng.choice(len(sources), p=weights / weights.sum())]
         start = rng.integers(0, len(src) - n)
-        crop = src[start:start + n] * rng.uniform(0.1, 1.5) / max(np.abs(src[start:start + n]).max(), 1e-3)
+        crop = src[start : start + n] * rng.uniform(0.1, 1.5) / max(np.abs(src[start : start + n]).max(), 1e-3)
         if rng.random() < 0.3:
             crop = crop + rng.standard_normal(n).astype(np.float32) * 10 ** rng.uniform(-4, -1.5)
         crops.append(np.clip(crop, -1, 1))
@@ -163,9 +177,10 @@ def train(out: Path, iterations: int, n_sentences: int, seed: int, batch: int, s
     t0 = time.time()
     sources = [synthesize_corpus(rng, VOICES, n_sentences)]
     sources += [load_recording(SHARED_DATA / p) for p in TRAIN_RECORDINGS]
-    heldout = {"librivox_0870 (real, held out)": load_recording(SHARED_DATA / HELDOUT_RECORDINGS[0]),
-               "espeak (unseen voices and sentences)":
-                   synthesize_corpus(np.random.default_rng(seed + 1), HELDOUT_VOICES, 20)}
+    heldout = {
+        "librivox_0870 (real, held out)": load_recording(SHARED_DATA / HELDOUT_RECORDINGS[0]),
+        "espeak (unseen voices and sentences)": synthesize_corpus(np.random.default_rng(seed + 1), HELDOUT_VOICES, 20),
+    }
     model = SpeechTokenizer(TokenizerShape())
     rvq = EmaRvqTrainer(model, rng)
     params = [p for p in model.parameters() if p.requires_grad]
@@ -187,14 +202,26 @@ def train(out: Path, iterations: int, n_sentences: int, seed: int, batch: int, s
         if it % 200 == 0 or it == iterations - 1:
             print(f"it {it} loss {loss.item():.4f} commit {commit.item():.4f} ({time.time() - t0:.0f} s)", flush=True)
     model.eval()
-    metrics = {name: {"mel_l1_8_levels": reconstruction_l1(model, pcm, 8),
-                      "mel_l1_1_level": reconstruction_l1(model, pcm, 1),
-                      "mel_l1_band_mean_baseline": mean_baseline_l1(model, pcm),
-                      "code_perplexity_per_level": [round(p, 1) for p in code_perplexity(model, pcm)]}
-               for name, pcm in heldout.items()}
-    info = {"iterations": iterations, "batch": batch, "crop_steps": steps, "lr": lr, "seed": seed,
-            "n_espeak_sentences": n_sentences, "train_audio_s": round(sum(len(s) for s in sources) / SAMPLE_RATE_HZ, 1),
-            "wall_time_s": round(time.time() - t0, 1), "metrics": metrics}
+    metrics = {
+        name: {
+            "mel_l1_8_levels": reconstruction_l1(model, pcm, 8),
+            "mel_l1_1_level": reconstruction_l1(model, pcm, 1),
+            "mel_l1_band_mean_baseline": mean_baseline_l1(model, pcm),
+            "code_perplexity_per_level": [round(p, 1) for p in code_perplexity(model, pcm)],
+        }
+        for name, pcm in heldout.items()
+    }
+    info = {
+        "iterations": iterations,
+        "batch": batch,
+        "crop_steps": steps,
+        "lr": lr,
+        "seed": seed,
+        "n_espeak_sentences": n_sentences,
+        "train_audio_s": round(sum(len(s) for s in sources) / SAMPLE_RATE_HZ, 1),
+        "wall_time_s": round(time.time() - t0, 1),
+        "metrics": metrics,
+    }
     out.parent.mkdir(parents=True, exist_ok=True)
     model.save(out, {"training": info})
     print(json.dumps(info, indent=2))

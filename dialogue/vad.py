@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.messages import VadState
+from ecas.core.messages import VadState
 
 VAD_RATE_HZ = 16_000
 VAD_CHUNK_SAMPLES = 512  # 32 ms: the only size the 16 kHz model accepts
@@ -29,9 +29,9 @@ class SileroVad:
         """pcm (N,) float32 @ 16 kHz -> one probability per completed 512-sample chunk."""
         buf = np.concatenate([self._pending, np.asarray(pcm16k, np.float32)])
         n_chunks = len(buf) // VAD_CHUNK_SAMPLES
-        chunks = [buf[i * VAD_CHUNK_SAMPLES:(i + 1) * VAD_CHUNK_SAMPLES] for i in range(n_chunks)]
+        chunks = [buf[i * VAD_CHUNK_SAMPLES : (i + 1) * VAD_CHUNK_SAMPLES] for i in range(n_chunks)]
         probs = [float(self._model(torch.from_numpy(chunk), VAD_RATE_HZ)) for chunk in chunks]
-        self._pending = buf[n_chunks * VAD_CHUNK_SAMPLES:].copy()
+        self._pending = buf[n_chunks * VAD_CHUNK_SAMPLES :].copy()
         return probs
 
 

@@ -13,19 +13,19 @@ of half a frame (20 ms). The first frame of a session passes unchanged.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Optional, Sequence
 
 import numpy as np
 
-from core.body import NUM_JOINTS
+from ecas.core.body import NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_quaternion, quaternion_to_axis_angle
 
 
 @dataclass
 class AlternationState:
-    rotation: Optional[np.ndarray]  # (J, 4) the previous input frame's rotations; None before the first frame
-    trans: Optional[np.ndarray]  # (3,) the previous input frame's translation
+    rotation: np.ndarray | None  # (J, 4) the previous input frame's rotations; None before the first frame
+    trans: np.ndarray | None  # (3,) the previous input frame's translation
 
 
 class AlternationFilter:

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
-from core.config import ConfigError
-from core.spec import ConditionSpec
-from core.timing import MOTION_FPS
+from ecas.core.config import ConfigError
+from ecas.core.spec import ConditionSpec
+from ecas.core.timing import MOTION_FPS
 from gesture.synth.config import LAYERED_MICRO_JOINTS
 
 
@@ -19,7 +19,7 @@ class IdleGateConfig:
     """Section 5's idle gate: while the agent is silent, upper and face tokens come from recorded idle slices."""
 
     enabled: bool = False
-    slices_dir: Optional[Path] = None  # holds idle_upper_tokens_slices.npz and idle_face_tokens_slices.npz
+    slices_dir: Path | None = None  # holds idle_upper_tokens_slices.npz and idle_face_tokens_slices.npz
     window_samples: int = 5760  # 3 steps of agent audio at 24 kHz
     l2_threshold: float = 0.5
     rewind_below_tokens: int = 12
@@ -52,11 +52,14 @@ class MicroMotionConfig:
         if self.head_drift_rad < 0:
             raise ConfigError(f"gesture.micro_motion.head_drift_rad: must be >= 0, got {self.head_drift_rad}")
         if not 0 < self.head_drift_hz < MOTION_FPS / 2:
-            raise ConfigError(f"gesture.micro_motion.head_drift_hz: must be in (0, {MOTION_FPS / 2}), "
-                              f"got {self.head_drift_hz}")
+            raise ConfigError(
+                f"gesture.micro_motion.head_drift_hz: must be in (0, {MOTION_FPS / 2}), got {self.head_drift_hz}"
+            )
         if not 0 <= self.collar_cutoff_hz < MOTION_FPS / 2:
-            raise ConfigError(f"gesture.micro_motion.collar_cutoff_hz: must be 0 (as fitted) or in (0, "
-                              f"{MOTION_FPS / 2}), got {self.collar_cutoff_hz}")
+            raise ConfigError(
+                f"gesture.micro_motion.collar_cutoff_hz: must be 0 (as fitted) or in (0, "
+                f"{MOTION_FPS / 2}), got {self.collar_cutoff_hz}"
+            )
 
 
 @dataclass(frozen=True)
@@ -136,15 +139,19 @@ class StabilizerConfig:
         if not self.joints:
             raise ConfigError("gesture.stabilizer.joints: must name at least one joint")
         if len(self.min_cutoff_hz) != len(self.joints) or min(self.min_cutoff_hz) <= 0:
-            raise ConfigError(f"gesture.stabilizer.min_cutoff_hz: need one value > 0 per joint of "
-                              f"gesture.stabilizer.joints ({len(self.joints)}), got {list(self.min_cutoff_hz)}")
+            raise ConfigError(
+                f"gesture.stabilizer.min_cutoff_hz: need one value > 0 per joint of "
+                f"gesture.stabilizer.joints ({len(self.joints)}), got {list(self.min_cutoff_hz)}"
+            )
         if self.speed_cutoff_hz <= 0:
             raise ConfigError(f"gesture.stabilizer.speed_cutoff_hz: must be > 0, got {self.speed_cutoff_hz}")
         if self.speed_gain_hz < 0:
             raise ConfigError(f"gesture.stabilizer.speed_gain_hz: must be >= 0, got {self.speed_gain_hz}")
         if len(self.hold_rad) != len(self.joints) or min(self.hold_rad) < 0:
-            raise ConfigError(f"gesture.stabilizer.hold_rad: need one value >= 0 per joint of "
-                              f"gesture.stabilizer.joints ({len(self.joints)}), got {list(self.hold_rad)}")
+            raise ConfigError(
+                f"gesture.stabilizer.hold_rad: need one value >= 0 per joint of "
+                f"gesture.stabilizer.joints ({len(self.joints)}), got {list(self.hold_rad)}"
+            )
         if not 0 < self.settle_share < 1:
             raise ConfigError(f"gesture.stabilizer.settle_share: must be in (0, 1), got {self.settle_share}")
 
@@ -153,8 +160,8 @@ class StabilizerConfig:
 class GestureConfig:
     """The `gesture:` section: checkpoints, sampling, classifier-free guidance, idle gate, speaker."""
 
-    lm_checkpoint: Optional[Path] = None  # a directory written by `python -m gesture.train_lm`
-    codec_checkpoints: Optional[Path] = None  # a directory holding the three codecs (upper, lower, face)
+    lm_checkpoint: Path | None = None  # a directory written by `python -m gesture.train_lm`
+    codec_checkpoints: Path | None = None  # a directory holding the three codecs (upper, lower, face)
     temperature: float = 0.9
     top_p_temporal: float = 0.8
     top_p_depth: float = 0.95
@@ -171,7 +178,7 @@ class GestureConfig:
     dtype_fallback: bool = True
     warmup_steps: int = 4  # silent steps run at start-up, then the state is reset
     initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0)
-    dialogue_spec: Optional[ConditionSpec] = None  # checked against the LM checkpoint's spec at start-up
+    dialogue_spec: ConditionSpec | None = None  # checked against the LM checkpoint's spec at start-up
     idle: IdleGateConfig = field(default_factory=IdleGateConfig)
     micro_motion: MicroMotionConfig = field(default_factory=MicroMotionConfig)
     face: FaceLayerConfig = field(default_factory=FaceLayerConfig)

@@ -23,10 +23,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.body import NUM_EXPRESSIONS
+from ecas.core.body import NUM_EXPRESSIONS
 from gesture.stabilizer import smoothing_share
-from gesture.synth.face import (BLINK_FALL_S, BLINK_HOLD_S, BLINK_PSI, BLINK_REFRACTORY_S, BLINK_RISE_S, BLINK_ROW,
-                                BROW_PSI, BROW_ROW)
+from gesture.synth.face import (
+    BLINK_FALL_S,
+    BLINK_HOLD_S,
+    BLINK_PSI,
+    BLINK_REFRACTORY_S,
+    BLINK_RISE_S,
+    BLINK_ROW,
+    BROW_PSI,
+    BROW_ROW,
+)
 from gesture.synth.tracks import bump
 
 BLINK_HEIGHT = 0.5  # a decoded blink: its activation rises this far above the running median ...

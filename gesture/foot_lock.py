@@ -29,11 +29,10 @@ p90 0.13 m/s (ground truth 0.125).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 
-from core.body import CONTACT_JOINTS, NUM_JOINTS
+from ecas.core.body import CONTACT_JOINTS, NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.body.skeleton import Skeleton
 from gesture.micro_motion import SpeakingTrack, frame_rms
@@ -46,7 +45,7 @@ KNEE_AXIS = np.array([1.0, 0.0, 0.0])  # the knee flexes about its local x (as g
 
 @dataclass
 class LegLock:
-    anchor: Optional[np.ndarray] = None  # (3,) world position the ankle is held at
+    anchor: np.ndarray | None = None  # (3,) world position the ankle is held at
     weight: float = 0.0  # share of the solved leg in the output: rises to 1 while locked, falls to 0 after
     releasing: bool = False
 
@@ -89,11 +88,20 @@ class FootLock:
     go at `release_m` while the agent is silent and at `release_speaking_m` while it speaks (its speaking track,
     gesture.micro_motion.SpeakingTrack, between the two)."""
 
-    def __init__(self, skeleton: Skeleton, fps: float, release_m: float = 0.2, release_speaking_m: float = 0.18,
-                 blend_s: float = 0.2, step_s: float = 0.5) -> None:
+    def __init__(
+        self,
+        skeleton: Skeleton,
+        fps: float,
+        release_m: float = 0.2,
+        release_speaking_m: float = 0.18,
+        blend_s: float = 0.2,
+        step_s: float = 0.5,
+    ) -> None:
         if min(release_m, release_speaking_m, blend_s, step_s, fps) <= 0:
-            raise ValueError(f"release_m, release_speaking_m, blend_s, step_s and fps must be > 0, got {release_m}, "
-                             f"{release_speaking_m}, {blend_s}, {step_s} and {fps}")
+            raise ValueError(
+                f"release_m, release_speaking_m, blend_s, step_s and fps must be > 0, got {release_m}, "
+                f"{release_speaking_m}, {blend_s}, {step_s} and {fps}"
+            )
         self.rest = skeleton.rest_joints.astype(np.float64)  # (J, 3)
         self.contact_index = [CONTACT_JOINTS.index(ankle) for _, _, ankle in LEGS]
         self.release_m, self.release_speaking_m = release_m, release_speaking_m
@@ -105,26 +113,28 @@ class FootLock:
         self.locks = [LegLock() for _ in LEGS]
         self.speaking.reset()
 
-    def _release_m(self, agent_pcm: Optional[np.ndarray], frames: int) -> np.ndarray:
+    def _release_m(self, agent_pcm: np.ndarray | None, frames: int) -> np.ndarray:
         """(frames,) each frame's release distance, from this step's agent audio (None: silent)."""
         speaking = np.array([self.speaking.step(rms) for rms in frame_rms(agent_pcm, frames)])
         return self.release_m + (self.release_speaking_m - self.release_m) * speaking
 
-    def _anchor(self, lock: LegLock, ankle: np.ndarray, planted: bool, release_m: float) -> Optional[np.ndarray]:
+    def _anchor(self, lock: LegLock, ankle: np.ndarray, planted: bool, release_m: float) -> np.ndarray | None:
         """Updates the lock with this frame's decoded ankle position; its anchor while the leg is (partly) solved."""
         if lock.anchor is None and planted:
             lock.anchor, lock.releasing = ankle.copy(), False
         if lock.anchor is None:
             return None
         lock.releasing |= not planted or float(np.linalg.norm(ankle - lock.anchor)) > release_m
-        lock.weight = (lock.weight - self.release_per_frame if lock.releasing
-                       else min(1.0, lock.weight + self.lock_per_frame))
+        lock.weight = (
+            lock.weight - self.release_per_frame if lock.releasing else min(1.0, lock.weight + self.lock_per_frame)
+        )
         if lock.weight <= 0:
             lock.anchor, lock.weight = None, 0.0
         return lock.anchor
 
-    def _leg(self, side: int, rot: np.ndarray, trans: np.ndarray, planted: np.ndarray,
-             release_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _leg(
+        self, side: int, rot: np.ndarray, trans: np.ndarray, planted: np.ndarray, release_m: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """One leg over F frames: rot (F, 4, 3, 3) local rotations of pelvis, hip, knee, ankle; trans (F, 3);
         planted (F,); release_m (F,) -> the frames where the lock holds (F,) bool and their (N, 3, 3, 3) hip, knee,
         ankle rotations."""
@@ -150,14 +160,20 @@ class FootLock:
         solved = np.stack([hip_local, knee_local, ankle_local], 1)  # (N, 3, 3, 3)
         return held, _relative_blend(rot[held, 1:], solved, weights[held])
 
-    def step(self, poses: np.ndarray, trans: np.ndarray, contacts: np.ndarray,
-             agent_pcm: Optional[np.ndarray] = None) -> np.ndarray:
+    def step(
+        self, poses: np.ndarray, trans: np.ndarray, contacts: np.ndarray, agent_pcm: np.ndarray | None = None
+    ) -> np.ndarray:
         poses = np.asarray(poses)
         frames = len(poses)
-        if poses.shape[1:] != (NUM_JOINTS, 3) or np.shape(trans) != (frames, 3) or \
-                np.shape(contacts) != (frames, len(CONTACT_JOINTS)):
-            raise ValueError(f"poses (F, {NUM_JOINTS}, 3), trans (F, 3) and contacts (F, {len(CONTACT_JOINTS)}) "
-                             f"expected, got {poses.shape}, {np.shape(trans)} and {np.shape(contacts)}")
+        if (
+            poses.shape[1:] != (NUM_JOINTS, 3)
+            or np.shape(trans) != (frames, 3)
+            or np.shape(contacts) != (frames, len(CONTACT_JOINTS))
+        ):
+            raise ValueError(
+                f"poses (F, {NUM_JOINTS}, 3), trans (F, 3) and contacts (F, {len(CONTACT_JOINTS)}) "
+                f"expected, got {poses.shape}, {np.shape(trans)} and {np.shape(contacts)}"
+            )
         out = poses.copy()
         trans, contacts = np.asarray(trans, np.float64), np.asarray(contacts)
         release_m = self._release_m(agent_pcm, frames)

@@ -22,14 +22,14 @@ so this puts the feet near the floor.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping, Optional
 
 import numpy as np
 import torch
 
-from core.body import REGIONS
-from core.timing import FRAMES_PER_STEP, MOTION_FPS
+from ecas.core.body import REGIONS
+from ecas.core.timing import FRAMES_PER_STEP, MOTION_FPS
 from gesture.alternation_filter import AlternationFilter
 from gesture.body.regions import LOWER_CONTACT_SLICE, LOWER_VELOCITY_SLICE, features_to_motion
 from gesture.codec.inference import inference_codec
@@ -63,15 +63,29 @@ class GestureGenerator:
     (`gesture.codec.inference`). `engine` replaces the LM's step path by another with its contract (the benchmark
     passes the cache-free oracle, `gesture.lm.naive.NaiveStepper`)."""
 
-    def __init__(self, lm: GestureLM, codecs: Mapping[str, GestureCodec], *, temperature: float = 0.9,
-                 top_p_temporal: float = 0.8, top_p_depth: float = 0.95, cfg_scale: float = 1.3, speaker: int = 3,
-                 seed: int = 0, dtype: str = "float32", hold_bias: float = 0.0, hold_levels: tuple[int, ...] = (),
-                 idle_gate: Optional[IdleGate] = None,
-                 micro_motion: Optional[MicroMotion] = None, face_layer: Optional[FaceLayer] = None,
-                 foot_lock: Optional[FootLock] = None, stabilizer: Optional[ArmStabilizer] = None,
-                 alternation_filter: Optional[AlternationFilter] = None,
-                 initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
-                 engine: Optional[StreamingModule] = None) -> None:
+    def __init__(
+        self,
+        lm: GestureLM,
+        codecs: Mapping[str, GestureCodec],
+        *,
+        temperature: float = 0.9,
+        top_p_temporal: float = 0.8,
+        top_p_depth: float = 0.95,
+        cfg_scale: float = 1.3,
+        speaker: int = 3,
+        seed: int = 0,
+        dtype: str = "float32",
+        hold_bias: float = 0.0,
+        hold_levels: tuple[int, ...] = (),
+        idle_gate: IdleGate | None = None,
+        micro_motion: MicroMotion | None = None,
+        face_layer: FaceLayer | None = None,
+        foot_lock: FootLock | None = None,
+        stabilizer: ArmStabilizer | None = None,
+        alternation_filter: AlternationFilter | None = None,
+        initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
+        engine: StreamingModule | None = None,
+    ) -> None:
         self.sizes = lm.sizes
         self.spec = lm.spec
         self.level_slices = _level_slices(lm)
@@ -104,8 +118,14 @@ class GestureGenerator:
         self.engine.reset_streaming()
         for decoder in self.decoders.values():
             decoder.reset()
-        for layer in (self.idle_gate, self.alternation_filter, self.foot_lock, self.stabilizer, self.micro_motion,
-                      self.face_layer):
+        for layer in (
+            self.idle_gate,
+            self.alternation_filter,
+            self.foot_lock,
+            self.stabilizer,
+            self.micro_motion,
+            self.face_layer,
+        ):
             if layer is not None:
                 layer.reset()
         self.generator.manual_seed(self.seed)
@@ -121,7 +141,7 @@ class GestureGenerator:
             decoder.close()
 
     @torch.inference_mode()
-    def step(self, text_token: int, audio_codes, agent_pcm: Optional[np.ndarray] = None) -> GeneratedStep:
+    def step(self, text_token: int, audio_codes, agent_pcm: np.ndarray | None = None) -> GeneratedStep:
         """text_token: id or −1; audio_codes (Q,) ints (−1 = none); agent_pcm: this step's agent audio (idle gate,
         micro-motion)."""
         audio = self._check_condition(text_token, audio_codes)
@@ -157,11 +177,14 @@ class GestureGenerator:
         if audio.numel() != spec.n_audio_codebooks:
             raise ValueError(f"audio_codes: expected {spec.n_audio_codebooks} codes, got {audio.numel()}")
         if not -1 <= int(text_token) < spec.text_vocab:
-            raise ValueError(f"text_token: must be in [-1, {spec.text_vocab - 1}] for condition spec "
-                             f"'{spec.name}', got {text_token}")
+            raise ValueError(
+                f"text_token: must be in [-1, {spec.text_vocab - 1}] for condition spec '{spec.name}', got {text_token}"
+            )
         if int(audio.min()) < -1 or int(audio.max()) >= spec.audio_card:
-            raise ValueError(f"audio_codes: must be in [-1, {spec.audio_card - 1}] for condition spec "
-                             f"'{spec.name}', got {audio.tolist()}")
+            raise ValueError(
+                f"audio_codes: must be in [-1, {spec.audio_card - 1}] for condition spec "
+                f"'{spec.name}', got {audio.tolist()}"
+            )
         return audio
 
     def _guidance(self, level: int) -> float:
@@ -175,7 +198,7 @@ class GestureGenerator:
         top_p = self.top_p_temporal if level == 0 else self.top_p_depth
         return sample_top_p(mask_pad(logits, self.sizes.pad_token), self.temperature, top_p, self.generator)
 
-    def _sample_tokens(self, text: int, audio: torch.Tensor) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+    def _sample_tokens(self, text: int, audio: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         tokens = [0] * self.sizes.n_levels
         tokens[0] = self._sample(self.engine.begin_step(self.history, text, audio, self._guidance(0)), 0)
         face_logits = []
@@ -192,10 +215,13 @@ class GestureGenerator:
 
     def _decode(self, tokens: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """-> poses (2, 55, 3), trans (2, 3), expressions (2, 100) and the decoded foot contacts (2, 4)."""
-        features = {name: self.decoders[name].step(tokens[self.level_slices[name]].view(1, -1, 1))[0].float().numpy()
-                    for name in REGIONS}  # name -> (2, nfeats)
-        poses, trans, expressions = features_to_motion(features["upper"], features["lower"], features["face"],
-                                                       trans0=self.carry, fps=MOTION_FPS)
+        features = {
+            name: self.decoders[name].step(tokens[self.level_slices[name]].view(1, -1, 1))[0].float().numpy()
+            for name in REGIONS
+        }  # name -> (2, nfeats)
+        poses, trans, expressions = features_to_motion(
+            features["upper"], features["lower"], features["face"], trans0=self.carry, fps=MOTION_FPS
+        )
         last_velocity = features["lower"][FRAMES_PER_STEP - 1, LOWER_VELOCITY_SLICE]
         self.carry = trans[-1].astype(np.float64) + last_velocity / MOTION_FPS
         return poses, trans, expressions, features["lower"][:, LOWER_CONTACT_SLICE]
@@ -212,8 +238,11 @@ def _inference_codec(codec: GestureCodec, dtype: str) -> GestureCodec:
 
 def _level_slices(lm: GestureLM) -> dict[str, slice]:
     s = lm.sizes
-    return {"upper": slice(0, s.n_upper), "lower": slice(s.n_upper, s.n_upper + s.n_lower),
-            "face": slice(s.n_upper + s.n_lower, s.n_levels)}
+    return {
+        "upper": slice(0, s.n_upper),
+        "lower": slice(s.n_upper, s.n_upper + s.n_lower),
+        "face": slice(s.n_upper + s.n_lower, s.n_levels),
+    }
 
 
 def _check_hold_levels(levels: tuple[int, ...], n_levels: int) -> frozenset[int]:

@@ -36,19 +36,31 @@ and, as the noise turns each whole arm, it shook the hands (their paths had 6-9x
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
-from typing import Mapping, Sequence
 
 import numpy as np
 
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.config import IdleGateConfig
-from gesture.synth.agent import (MICRO_ENVELOPE_GAIN, MICRO_ENVELOPE_SMOOTH_S,
-                                 MICRO_GATE_HZ, MICRO_LISTENING, MICRO_PARTS, OWN_GATES, micro_gate)
+from gesture.synth.agent import (
+    MICRO_ENVELOPE_GAIN,
+    MICRO_ENVELOPE_SMOOTH_S,
+    MICRO_GATE_HZ,
+    MICRO_LISTENING,
+    MICRO_PARTS,
+    OWN_GATES,
+    micro_gate,
+)
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
 from gesture.synth.reflex import PostureReflexes
-from gesture.synth.tracks import (NOISE_TRUNCATE_SIGMAS, lowpass_gain, lowpass_sos, lowpass_warmup_frames,
-                                  noise_sigma_frames)
+from gesture.synth.tracks import (
+    NOISE_TRUNCATE_SIGMAS,
+    lowpass_gain,
+    lowpass_sos,
+    lowpass_warmup_frames,
+    noise_sigma_frames,
+)
 
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
 LIMIT_STDS = 2.5  # each offset is softly limited (tanh) to this many fitted stds per axis: no wrist folds over
@@ -225,9 +237,15 @@ class MicroMotion:
     `params`: joint -> its noise (gesture.synth.calibration.MicroNoise); `scale` multiplies every std; `head_drift`:
     applied last, or None."""
 
-    def __init__(self, params: Mapping[int, MicroNoise], fps: float, seed: int = 0,
-                 scale: float = 1.0, listening_scale: float = MICRO_LISTENING,
-                 head_drift: HeadDrift | None = None) -> None:
+    def __init__(
+        self,
+        params: Mapping[int, MicroNoise],
+        fps: float,
+        seed: int = 0,
+        scale: float = 1.0,
+        listening_scale: float = MICRO_LISTENING,
+        head_drift: HeadDrift | None = None,
+    ) -> None:
         if not params:
             raise ValueError("micro-motion needs at least one joint")
         self.joints = sorted(params)
@@ -240,7 +258,9 @@ class MicroMotion:
         part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
         self.part = np.array([part_of.get(j, 0) for j in self.joints])  # (J,)
         own_log_std = {j: log_std for joints, log_std in OWN_GATES for j in joints}
-        self.own = [k for k, j in enumerate(self.joints) if j in own_log_std]  # rows with their own gate, as in the data
+        self.own = [
+            k for k, j in enumerate(self.joints) if j in own_log_std
+        ]  # rows with their own gate, as in the data
         self.own_log_std = np.array([own_log_std[self.joints[k]] for k in self.own])  # (own,)
         self.own_gate = CausalSmoothNoise(np.full(len(self.own), MICRO_GATE_HZ), fps) if self.own else None
         self.listening_scale = listening_scale
@@ -295,9 +315,14 @@ class MicroMotion:
         return out
 
 
-def calibrated_micro_motion(joints: Sequence[int], fps: float, seed: int, scale: float = 1.0,
-                            head_drift: HeadDrift | None = None,
-                            cutoff_hz: Mapping[int, float] | None = None) -> MicroMotion:
+def calibrated_micro_motion(
+    joints: Sequence[int],
+    fps: float,
+    seed: int,
+    scale: float = 1.0,
+    head_drift: HeadDrift | None = None,
+    cutoff_hz: Mapping[int, float] | None = None,
+) -> MicroMotion:
     """The layer with the calibration's fitted parameters for `joints` (each must have been fitted); a joint in
     `cutoff_hz` has its slow noise low-passed at that cutoff instead of its fitted one."""
     fitted = load_calibration().micro_motion
@@ -305,5 +330,10 @@ def calibrated_micro_motion(joints: Sequence[int], fps: float, seed: int, scale:
     if missing:
         raise ValueError(f"joints {missing}: no fitted micro-motion (fitted: {sorted(fitted)})")
     cutoff_hz = cutoff_hz or {}
-    return MicroMotion({j: replace(fitted[j], cutoff_hz=cutoff_hz.get(j, fitted[j].cutoff_hz)) for j in joints}, fps,
-                       seed, scale, head_drift=head_drift)
+    return MicroMotion(
+        {j: replace(fitted[j], cutoff_hz=cutoff_hz.get(j, fitted[j].cutoff_hz)) for j in joints},
+        fps,
+        seed,
+        scale,
+        head_drift=head_drift,
+    )

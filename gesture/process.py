@@ -14,20 +14,26 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 import torch
 
-from core.config import ConfigError
-from core.messages import DialogueStep, GestureStep, Message
-from core.component import RunContext
-from core.timing import MOTION_FPS, STEP_SAMPLES
+from ecas.core.component import RunContext
+from ecas.core.config import ConfigError
+from ecas.core.messages import DialogueStep, GestureStep, Message
+from ecas.core.timing import MOTION_FPS, STEP_SAMPLES
 from gesture.alternation_filter import AlternationFilter
 from gesture.body.skeleton import Skeleton
-from gesture.config import (AlternationFilterConfig, FaceLayerConfig, FootLockConfig, GestureConfig, MicroMotionConfig,
-                            StabilizerConfig)
+from gesture.config import (
+    AlternationFilterConfig,
+    FaceLayerConfig,
+    FootLockConfig,
+    GestureConfig,
+    MicroMotionConfig,
+    StabilizerConfig,
+)
 from gesture.face_layer import FaceLayer
 from gesture.foot_lock import FootLock
 from gesture.generator import GestureGenerator
@@ -47,10 +53,10 @@ class GestureComponent:
     def __init__(self, generator: GestureGenerator, run: RunContext) -> None:
         self.generator = generator
         self.run = run
-        self.session: Optional[str] = None
+        self.session: str | None = None
         self.step_ms: list[float] = []  # bounded: summarised and cleared every STATS_EVERY steps
         self.summary = {"steps": 0, "sessions": 0}
-        self.record: Optional[list[GestureStep]] = None if run.live else []
+        self.record: list[GestureStep] | None = None if run.live else []
 
     def handle(self, msg: Message) -> Sequence[Message]:
         if not isinstance(msg, DialogueStep):
@@ -63,8 +69,9 @@ class GestureComponent:
         start = time.perf_counter()
         out = self.generator.step(msg.text_token, msg.agent_codes, msg.agent_pcm)
         self._record((time.perf_counter() - start) * 1e3)
-        step = GestureStep(poses=out.poses, trans=out.trans, expressions=out.expressions, tokens=out.tokens,
-                           va_prob=out.va_prob)
+        step = GestureStep(
+            poses=out.poses, trans=out.trans, expressions=out.expressions, tokens=out.tokens, va_prob=out.va_prob
+        )
         if self.record is not None:
             self.record.append(step)
         return (step,)
@@ -78,8 +85,12 @@ class GestureComponent:
     def _summarise(self) -> None:
         if self.step_ms:
             ms = np.asarray(self.step_ms)
-            self.summary.update(step_ms_median=float(np.median(ms)), step_ms_p95=float(np.percentile(ms, 95)),
-                                step_ms_p99=float(np.percentile(ms, 99)), step_ms_max=float(ms.max()))
+            self.summary.update(
+                step_ms_median=float(np.median(ms)),
+                step_ms_p95=float(np.percentile(ms, 95)),
+                step_ms_p99=float(np.percentile(ms, 99)),
+                step_ms_max=float(ms.max()),
+            )
             self.step_ms.clear()
 
     def flush(self) -> Sequence[Message]:
@@ -97,9 +108,15 @@ class GestureComponent:
 def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
     """The generated steps as one npz (see the module docstring)."""
     poses = np.concatenate([s.poses for s in steps])  # (2T, 55, 3)
-    np.savez(path, poses=poses.reshape(len(poses), -1), trans=np.concatenate([s.trans for s in steps]),
-             expressions=np.concatenate([s.expressions for s in steps]), mocap_frame_rate=np.float32(MOTION_FPS),
-             tokens=np.stack([s.tokens for s in steps]), va_prob=np.array([s.va_prob for s in steps], np.float32))
+    np.savez(
+        path,
+        poses=poses.reshape(len(poses), -1),
+        trans=np.concatenate([s.trans for s in steps]),
+        expressions=np.concatenate([s.expressions for s in steps]),
+        mocap_frame_rate=np.float32(MOTION_FPS),
+        tokens=np.stack([s.tokens for s in steps]),
+        va_prob=np.array([s.va_prob for s in steps], np.float32),
+    )
 
 
 def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
@@ -119,19 +136,38 @@ def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
     if cfg.idle.enabled:
         upper, face = load_idle_slices(cfg.idle.slices_dir)
         s = lm.sizes
-        idle = IdleGate(upper, face, slice(0, s.n_upper), slice(s.face_levels.start, s.n_levels),
-                        cfg.idle.window_samples, cfg.idle.l2_threshold, cfg.idle.rewind_below_tokens)
-    return GestureGenerator(lm, codecs, temperature=cfg.temperature, top_p_temporal=cfg.top_p_temporal,
-                            top_p_depth=cfg.top_p_depth, cfg_scale=cfg.cfg_scale, speaker=cfg.speaker, seed=seed,
-                            dtype=cfg.dtype, hold_bias=cfg.hold_bias, hold_levels=cfg.hold_levels, idle_gate=idle,
-                            micro_motion=build_micro_motion(cfg.micro_motion, seed),
-                            face_layer=build_face_layer(cfg.face, seed), foot_lock=build_foot_lock(cfg.foot_lock),
-                            stabilizer=build_stabilizer(cfg.stabilizer),
-                            alternation_filter=build_alternation_filter(cfg.alternation_filter),
-                            initial_translation=cfg.initial_translation)
+        idle = IdleGate(
+            upper,
+            face,
+            slice(0, s.n_upper),
+            slice(s.face_levels.start, s.n_levels),
+            cfg.idle.window_samples,
+            cfg.idle.l2_threshold,
+            cfg.idle.rewind_below_tokens,
+        )
+    return GestureGenerator(
+        lm,
+        codecs,
+        temperature=cfg.temperature,
+        top_p_temporal=cfg.top_p_temporal,
+        top_p_depth=cfg.top_p_depth,
+        cfg_scale=cfg.cfg_scale,
+        speaker=cfg.speaker,
+        seed=seed,
+        dtype=cfg.dtype,
+        hold_bias=cfg.hold_bias,
+        hold_levels=cfg.hold_levels,
+        idle_gate=idle,
+        micro_motion=build_micro_motion(cfg.micro_motion, seed),
+        face_layer=build_face_layer(cfg.face, seed),
+        foot_lock=build_foot_lock(cfg.foot_lock),
+        stabilizer=build_stabilizer(cfg.stabilizer),
+        alternation_filter=build_alternation_filter(cfg.alternation_filter),
+        initial_translation=cfg.initial_translation,
+    )
 
 
-def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotion]:
+def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> MicroMotion | None:
     """The `gesture.micro_motion` layer, or None when it is off."""
     if not cfg.enabled:
         return None
@@ -143,32 +179,39 @@ def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> Optional[MicroMotio
         raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
 
 
-def build_face_layer(cfg: FaceLayerConfig, seed: int) -> Optional[FaceLayer]:
+def build_face_layer(cfg: FaceLayerConfig, seed: int) -> FaceLayer | None:
     """The `gesture.face` layer on the decoded expressions, or None when it is off."""
     if not cfg.enabled:
         return None
     return FaceLayer(MOTION_FPS, seed, cfg.blinks_per_minute, cfg.brow_cutoff_hz)
 
 
-def build_foot_lock(cfg: FootLockConfig) -> Optional[FootLock]:
+def build_foot_lock(cfg: FootLockConfig) -> FootLock | None:
     """The `gesture.foot_lock` layer on the decoded legs (the built-in skeleton, as the training data's), or None."""
     if not cfg.enabled:
         return None
     return FootLock(Skeleton.default(), MOTION_FPS, cfg.release_m, cfg.release_speaking_m, cfg.blend_s, cfg.step_s)
 
 
-def build_stabilizer(cfg: StabilizerConfig) -> Optional[ArmStabilizer]:
+def build_stabilizer(cfg: StabilizerConfig) -> ArmStabilizer | None:
     """The `gesture.stabilizer` smoothing of the output arms, or None when it is off."""
     if not cfg.enabled:
         return None
     try:
-        return ArmStabilizer(cfg.joints, MOTION_FPS, cfg.min_cutoff_hz, cfg.speed_gain_hz, cfg.speed_cutoff_hz,
-                             cfg.hold_rad, cfg.settle_share)
+        return ArmStabilizer(
+            cfg.joints,
+            MOTION_FPS,
+            cfg.min_cutoff_hz,
+            cfg.speed_gain_hz,
+            cfg.speed_cutoff_hz,
+            cfg.hold_rad,
+            cfg.settle_share,
+        )
     except ValueError as error:
         raise ConfigError(f"gesture.stabilizer: {error}") from None
 
 
-def build_alternation_filter(cfg: AlternationFilterConfig) -> Optional[AlternationFilter]:
+def build_alternation_filter(cfg: AlternationFilterConfig) -> AlternationFilter | None:
     """The `gesture.alternation_filter` on the decoded motion, or None when it is off."""
     if not cfg.enabled:
         return None
@@ -190,6 +233,12 @@ def create_component(cfg: GestureConfig, run: RunContext) -> GestureComponent:
     torch.set_num_threads(1)
     generator = build_generator(cfg, run.seed)
     warm_up(generator, cfg.warmup_steps)
-    log.info("gesture LM %s (spec %s), codecs %s, cfg %.2f, dtype %s", cfg.lm_checkpoint, generator.spec.name,
-             cfg.codec_checkpoints, cfg.cfg_scale, cfg.dtype)
+    log.info(
+        "gesture LM %s (spec %s), codecs %s, cfg %.2f, dtype %s",
+        cfg.lm_checkpoint,
+        generator.spec.name,
+        cfg.codec_checkpoints,
+        cfg.cfg_scale,
+        cfg.dtype,
+    )
     return GestureComponent(generator, run)

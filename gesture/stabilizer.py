@@ -20,12 +20,12 @@ catch-ups, as a speaker holds a pose and then moves on; a held output is never m
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Optional, Sequence
 
 import numpy as np
 
-from core.body import NUM_JOINTS
+from ecas.core.body import NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_quaternion, quaternion_to_axis_angle
 
 
@@ -51,7 +51,7 @@ def smoothing_share(cutoff_hz: np.ndarray | float, fps: float) -> np.ndarray:
 
 @dataclass
 class StabilizerState:
-    rotation: Optional[np.ndarray]  # (J, 4) the last output rotation per joint (quaternion); None before the first frame
+    rotation: np.ndarray | None  # (J, 4) the last output rotation per joint (quaternion); None before the first frame
     speed_rad_s: np.ndarray  # (J,) the smoothed angular speed of the input against the last output
     holding: np.ndarray  # (J,) bool: the joint holds its last output
 
@@ -64,19 +64,32 @@ class ArmStabilizer:
     leave a held output (one for all joints, or one per joint; 0: no holds); `settle_share`: the share of `hold_rad`
     within which a following output settles into a hold."""
 
-    def __init__(self, joints: Sequence[int], fps: float, min_cutoff_hz: float | Sequence[float],
-                 speed_gain_hz: float, speed_cutoff_hz: float = 1.0, hold_rad: float | Sequence[float] = 0.0,
-                 settle_share: float = 0.25) -> None:
+    def __init__(
+        self,
+        joints: Sequence[int],
+        fps: float,
+        min_cutoff_hz: float | Sequence[float],
+        speed_gain_hz: float,
+        speed_cutoff_hz: float = 1.0,
+        hold_rad: float | Sequence[float] = 0.0,
+        settle_share: float = 0.25,
+    ) -> None:
         if not joints or not all(0 <= j < NUM_JOINTS for j in joints):
             raise ValueError(f"joints: need one or more of 0..{NUM_JOINTS - 1}, got {list(joints)}")
-        cutoffs_hz, hold_rad = (_per_joint(name, value, len(joints)) for name, value
-                                in (("min_cutoff_hz", min_cutoff_hz), ("hold_rad", hold_rad)))
+        cutoffs_hz, hold_rad = (
+            _per_joint(name, value, len(joints))
+            for name, value in (("min_cutoff_hz", min_cutoff_hz), ("hold_rad", hold_rad))
+        )
         if hold_rad.min() < 0 or not 0 < settle_share < 1:
-            raise ValueError(f"hold_rad must be >= 0 and settle_share in (0, 1), got hold_rad={list(hold_rad)}, "
-                             f"settle_share={settle_share}")
+            raise ValueError(
+                f"hold_rad must be >= 0 and settle_share in (0, 1), got hold_rad={list(hold_rad)}, "
+                f"settle_share={settle_share}"
+            )
         if min(cutoffs_hz.min(), speed_cutoff_hz) <= 0 or speed_gain_hz < 0 or fps <= 0:
-            raise ValueError(f"cutoffs and fps must be > 0 and the gain >= 0, got min_cutoff_hz={min_cutoff_hz}, "
-                             f"speed_cutoff_hz={speed_cutoff_hz}, speed_gain_hz={speed_gain_hz}, fps={fps}")
+            raise ValueError(
+                f"cutoffs and fps must be > 0 and the gain >= 0, got min_cutoff_hz={min_cutoff_hz}, "
+                f"speed_cutoff_hz={speed_cutoff_hz}, speed_gain_hz={speed_gain_hz}, fps={fps}"
+            )
         self.joints = list(joints)
         self.fps, self.speed_gain_hz = fps, speed_gain_hz
         self.min_cutoff_hz = cutoffs_hz  # (J,)
@@ -104,7 +117,9 @@ class ArmStabilizer:
         alpha = np.where(s.holding, 0.0, alpha)
         axis = remaining[:, 1:] / np.maximum(sin_half, 1e-12)[:, None]
         half = 0.5 * alpha * angle
-        moved = _quaternion_product(s.rotation, np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * axis], -1))
+        moved = _quaternion_product(
+            s.rotation, np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * axis], -1)
+        )
         s.rotation = moved / np.linalg.norm(moved, axis=-1, keepdims=True)
         return s.rotation
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from ecas.core.body import NUM_EXPRESSIONS, NUM_JOINTS
 from gesture.body.skeleton import JOINT_NAMES, Skeleton
 from render.body_model import BodyModel
 from render.mesh_parts import Part, capsule, ellipsoid, loft, mirror_part, rigid_part, ring_faces, smoothstep
@@ -82,23 +82,25 @@ EXPRESSION_MAP = _expression_map()
 
 
 # Key cross-sections of the head, bottom to top: (y, centre z, half width x, half depth z) in metres.
-_HEAD_KEYS = np.array([
-    (0.198, 0.052, 0.000, 0.000),
-    (0.206, 0.050, 0.030, 0.028),
-    (0.218, 0.040, 0.046, 0.046),
-    (0.233, 0.027, 0.057, 0.062),
-    (0.247, 0.018, 0.064, 0.074),
-    (0.257, 0.014, 0.068, 0.080),
-    (0.277, 0.009, 0.072, 0.088),
-    (0.302, 0.004, 0.076, 0.095),
-    (0.332, 0.000, 0.078, 0.098),
-    (0.362, -0.003, 0.078, 0.097),
-    (0.392, -0.005, 0.074, 0.092),
-    (0.417, -0.006, 0.064, 0.080),
-    (0.437, -0.006, 0.046, 0.060),
-    (0.449, -0.006, 0.022, 0.030),
-    (0.453, -0.006, 0.000, 0.000),
-])
+_HEAD_KEYS = np.array(
+    [
+        (0.198, 0.052, 0.000, 0.000),
+        (0.206, 0.050, 0.030, 0.028),
+        (0.218, 0.040, 0.046, 0.046),
+        (0.233, 0.027, 0.057, 0.062),
+        (0.247, 0.018, 0.064, 0.074),
+        (0.257, 0.014, 0.068, 0.080),
+        (0.277, 0.009, 0.072, 0.088),
+        (0.302, 0.004, 0.076, 0.095),
+        (0.332, 0.000, 0.078, 0.098),
+        (0.362, -0.003, 0.078, 0.097),
+        (0.392, -0.005, 0.074, 0.092),
+        (0.417, -0.006, 0.064, 0.080),
+        (0.437, -0.006, 0.046, 0.060),
+        (0.449, -0.006, 0.022, 0.030),
+        (0.453, -0.006, 0.000, 0.000),
+    ]
+)
 DEFAULT_HEAD_JOINT_M = np.array([0.0, 0.271, 0.005])
 MOUTH_Y = 0.257
 MOUTH_CORNER_DEG = 22.0
@@ -146,8 +148,7 @@ def _head() -> Part:
     forward = vertices[:, 2] - np.interp(vertices[:, 1], ys, cz)
     sideways = vertices[:, 0] / np.maximum(ring_rx, 1e-6) * ring_rz  # on the circle of radius rz
     cos_front = forward / np.maximum(np.hypot(sideways, forward), 1e-9)  # cosine of the angle from the front
-    lens = smoothstep(np.cos(np.radians(MOUTH_CORNER_DEG + 3)), np.cos(np.radians(MOUTH_CORNER_DEG - 12)),
-                      cos_front)
+    lens = smoothstep(np.cos(np.radians(MOUTH_CORNER_DEG + 3)), np.cos(np.radians(MOUTH_CORNER_DEG - 12)), cos_front)
     chin = smoothstep(np.cos(np.radians(80)), np.cos(np.radians(40)), cos_front)
     depth = MOUTH_Y - vertices[:, 1]
     ramp = smoothstep(0.0, 0.025, depth)
@@ -158,7 +159,7 @@ def _head() -> Part:
     weights[:, J["head"]] = 1.0 - jaw_share
 
     colours = np.tile(np.asarray(SKIN), (len(vertices), 1))
-    lip = lens * np.exp(-((vertices[:, 1] - MOUTH_Y) / 0.0055) ** 2)
+    lip = lens * np.exp(-(((vertices[:, 1] - MOUTH_Y) / 0.0055) ** 2))
     colours = colours * (1 - lip[:, None]) + np.asarray(LIPS) * lip[:, None]
     colours[(ring_of_vertex == lp) | (ring_of_vertex == t2)] = MOUTH
     colours[(ring_of_vertex == t) | (ring_of_vertex == up)] = TEETH
@@ -202,8 +203,9 @@ def _eye(side: int) -> Part:
     center = np.array([x, EYE_Y, head_front_z(x, EYE_Y) - 0.0025])
     yaw = np.arcsin(np.clip(x / 0.076, -1, 1)) * 0.9
     axes = np.array([[np.cos(yaw), 0, -np.sin(yaw)], [0, 1.0, 0], [np.sin(yaw), 0, np.cos(yaw)]])
-    vertices, faces = ellipsoid(center, np.array([0.0085, 0.0052, 0.0115]), 16, 8,
-                                axes=np.stack([axes[0], axes[2], axes[1]]))
+    vertices, faces = ellipsoid(
+        center, np.array([0.0085, 0.0052, 0.0115]), 16, 8, axes=np.stack([axes[0], axes[2], axes[1]])
+    )
     joint = J["left_eye_smplhf"] if side > 0 else J["right_eye_smplhf"]
     part = rigid_part("eye", vertices, faces, joint, NUM_JOINTS, EYES)
     part.attributes["eye_center"] = np.tile(center, (len(vertices), 1))
@@ -223,15 +225,17 @@ def _brow(side: int) -> Part:
 
 def _nose() -> Part:
     center = np.array([0.0, 0.287, head_front_z(0.0, 0.287) + 0.001])
-    vertices, faces = ellipsoid(center, np.array([0.011, 0.013, 0.019]), 16, 8,
-                                axes=np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]))
+    vertices, faces = ellipsoid(
+        center, np.array([0.011, 0.013, 0.019]), 16, 8, axes=np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])
+    )
     return rigid_part("nose", vertices, faces, J["head"], NUM_JOINTS, tuple(0.97 * np.asarray(SKIN)))
 
 
 def _ear(side: int) -> Part:
     center = np.array([side * 0.075, 0.300, -0.010])
-    vertices, faces = ellipsoid(center, np.array([0.008, 0.014, 0.021]), 12, 6,
-                                axes=np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]]))
+    vertices, faces = ellipsoid(
+        center, np.array([0.008, 0.014, 0.021]), 12, 6, axes=np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])
+    )
     return rigid_part("ear", vertices, faces, J["head"], NUM_JOINTS, SKIN)
 
 
@@ -239,32 +243,36 @@ def _ear(side: int) -> Part:
 
 
 # Torso cross-sections bottom to top: (y, centre z, half width, half depth).
-_TORSO_KEYS = np.array([
-    (-0.505, 0.000, 0.000, 0.000),
-    (-0.495, 0.000, 0.080, 0.060),
-    (-0.470, 0.002, 0.130, 0.088),
-    (-0.420, 0.000, 0.156, 0.094),
-    (-0.350, 0.000, 0.158, 0.094),
-    (-0.280, 0.004, 0.146, 0.092),
-    (-0.200, 0.010, 0.136, 0.094),
-    (-0.110, 0.012, 0.146, 0.101),
-    (-0.030, 0.010, 0.160, 0.106),
-    (0.040, 0.002, 0.168, 0.100),
-    (0.088, -0.008, 0.156, 0.084),
-    (0.114, -0.014, 0.116, 0.064),
-    (0.130, -0.018, 0.058, 0.040),
-    (0.135, -0.018, 0.000, 0.000),
-])
+_TORSO_KEYS = np.array(
+    [
+        (-0.505, 0.000, 0.000, 0.000),
+        (-0.495, 0.000, 0.080, 0.060),
+        (-0.470, 0.002, 0.130, 0.088),
+        (-0.420, 0.000, 0.156, 0.094),
+        (-0.350, 0.000, 0.158, 0.094),
+        (-0.280, 0.004, 0.146, 0.092),
+        (-0.200, 0.010, 0.136, 0.094),
+        (-0.110, 0.012, 0.146, 0.101),
+        (-0.030, 0.010, 0.160, 0.106),
+        (0.040, 0.002, 0.168, 0.100),
+        (0.088, -0.008, 0.156, 0.084),
+        (0.114, -0.014, 0.116, 0.064),
+        (0.130, -0.018, 0.058, 0.040),
+        (0.135, -0.018, 0.000, 0.000),
+    ]
+)
 _SPINE_KEYS = (("pelvis", -0.37), ("spine1", -0.25), ("spine2", -0.12), ("spine3", -0.03))
 
 
 def _torso() -> Part:
-    ys = np.concatenate([_TORSO_KEYS[:2, 0], np.linspace(_TORSO_KEYS[2, 0], _TORSO_KEYS[-3, 0], 30),
-                         _TORSO_KEYS[-2:, 0]])
+    ys = np.concatenate(
+        [_TORSO_KEYS[:2, 0], np.linspace(_TORSO_KEYS[2, 0], _TORSO_KEYS[-3, 0], 30), _TORSO_KEYS[-2:, 0]]
+    )
     profile = [PchipInterpolator(_TORSO_KEYS[:, 0], _TORSO_KEYS[:, k])(ys) for k in (1, 2, 3)]
     centers = np.stack([np.zeros_like(ys), ys, profile[0]], 1)
-    vertices, faces = loft(centers, profile[1], profile[2], np.array([1.0, 0, 0]), np.array([0, 0, 1.0]), 48,
-                           exponent=2.3)
+    vertices, faces = loft(
+        centers, profile[1], profile[2], np.array([1.0, 0, 0]), np.array([0, 0, 1.0]), 48, exponent=2.3
+    )
     y, ax = vertices[:, 1], np.abs(vertices[:, 0])
     weights = np.zeros((len(vertices), NUM_JOINTS))
     key_y = np.array([k[1] for k in _SPINE_KEYS])
@@ -318,15 +326,24 @@ def _left_hand(rest: np.ndarray) -> list[Part]:
     knuckles = np.stack([rest[J[f"left_{f}1"]] for f in ("index", "middle", "ring", "pinky")])
     z_lo, z_hi = knuckles[:, 2].min() - 0.010, knuckles[:, 2].max() + 0.010
     x_end = knuckles[:, 0].mean() + 0.004
-    xs = np.array([wrist[0] - 0.022, wrist[0] - 0.018, wrist[0] - 0.005, wrist[0] + 0.03, x_end - 0.01, x_end,
-                   x_end + 0.004])
+    xs = np.array(
+        [wrist[0] - 0.022, wrist[0] - 0.018, wrist[0] - 0.005, wrist[0] + 0.03, x_end - 0.01, x_end, x_end + 0.004]
+    )
     half_width = np.array([0.0, 0.022, 0.028, 0.034, 0.036, 0.030, 0.0])
     half_thick = np.array([0.0, 0.014, 0.016, 0.015, 0.013, 0.011, 0.0])
     zc = 0.5 * (z_lo + z_hi)
-    centers = np.stack([xs, np.full_like(xs, wrist[1] - 0.003), wrist[2] + (zc - wrist[2]) * np.clip(
-        (xs - wrist[0]) / 0.05, 0, 1)], 1)
-    v, f = loft(centers, half_width * (z_hi - z_lo) / 0.066, half_thick, np.array([0, 0, 1.0]),
-                np.array([0, 1.0, 0]), 20, exponent=3.0)
+    centers = np.stack(
+        [xs, np.full_like(xs, wrist[1] - 0.003), wrist[2] + (zc - wrist[2]) * np.clip((xs - wrist[0]) / 0.05, 0, 1)], 1
+    )
+    v, f = loft(
+        centers,
+        half_width * (z_hi - z_lo) / 0.066,
+        half_thick,
+        np.array([0, 0, 1.0]),
+        np.array([0, 1.0, 0]),
+        20,
+        exponent=3.0,
+    )
     parts = [rigid_part("palm", v, f, J["left_wrist"], NUM_JOINTS, SKIN)]
     for finger in ("index", "middle", "ring", "pinky", "thumb"):
         joints = [rest[J[f"left_{finger}{k}"]] for k in (1, 2, 3)]
@@ -356,11 +373,22 @@ def _left_leg(rest: np.ndarray) -> list[Part]:
     xs = np.interp(zs, [heel[2], toe[2]], [ankle[0], toe[0]])
     half_w = np.array([0.0, 0.030, 0.036, 0.040, 0.044, 0.0])
     half_h = np.array([0.0, 0.036, 0.040, 0.036, 0.026, 0.0])
-    v, f = loft(np.stack([xs, ys, zs], 1), half_w, half_h, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 18,
-                exponent=3.0)
+    v, f = loft(
+        np.stack([xs, ys, zs], 1), half_w, half_h, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), 18, exponent=3.0
+    )
     parts.append(rigid_part("foot", v, f, J["left_ankle"], NUM_JOINTS, SHOES))
-    v, f = capsule(toe + np.array([0.0, -0.002, 0.0]), toe + np.array([0.0, -0.004, 0.055]), 0.028, 0.024, 16, 4, 4,
-                   flatten=0.75, hint=np.array([0, 1.0, 0]), exponent=2.6)
+    v, f = capsule(
+        toe + np.array([0.0, -0.002, 0.0]),
+        toe + np.array([0.0, -0.004, 0.055]),
+        0.028,
+        0.024,
+        16,
+        4,
+        4,
+        flatten=0.75,
+        hint=np.array([0, 1.0, 0]),
+        exponent=2.6,
+    )
     parts.append(rigid_part("toe", v, f, J["left_foot"], NUM_JOINTS, SHOES))
     v, f = ellipsoid(ankle, np.array([0.034, 0.034, 0.034]), 14, 7)
     parts.append(rigid_part("ankle", v, f, J["left_ankle"], NUM_JOINTS, TROUSERS))
@@ -373,7 +401,7 @@ def _mirror_map() -> np.ndarray:
     for i, name in enumerate(JOINT_NAMES):
         for a, b in (("left_", "right_"), ("right_", "left_")):
             if name.startswith(a):
-                out[i] = J[b + name[len(a):]]
+                out[i] = J[b + name[len(a) :]]
     return out
 
 
@@ -390,19 +418,19 @@ def _semantic_shapes(vertices: np.ndarray, attrs: dict, head_offset: np.ndarray)
     mouth_z = head_front_z(0.0, MOUTH_Y)
     for side in (-1.0, 1.0):
         corner = np.array([side * corner_x, MOUTH_Y, head_front_z(side * corner_x, MOUTH_Y)])
-        g = np.exp(-np.sum((vertices - corner) ** 2, 1) / (2 * 0.011 ** 2)) * face
+        g = np.exp(-np.sum((vertices - corner) ** 2, 1) / (2 * 0.011**2)) * face
         shapes[0] += g[:, None] * np.array([side * 0.003, 0.0065, -0.003])  # smile
         shapes[3] += g[:, None] * np.array([side * 0.007, 0.0, -0.002])  # mouth_wide
         shapes[4] += g[:, None] * np.array([-side * 0.006, 0.0, 0.002])  # pucker: corners in
-    lips = np.exp(-np.sum((vertices - np.array([0.0, MOUTH_Y, mouth_z])) ** 2, 1) / (2 * 0.014 ** 2)) * face
+    lips = np.exp(-np.sum((vertices - np.array([0.0, MOUTH_Y, mouth_z])) ** 2, 1) / (2 * 0.014**2)) * face
     shapes[4] += lips[:, None] * np.array([0.0, 0.0, 0.006])  # pucker: lips forward
-    below = np.exp(-((vertices[:, 1] - MOUTH_Y) / 0.012) ** 2) * lips
+    below = np.exp(-(((vertices[:, 1] - MOUTH_Y) / 0.012) ** 2)) * lips
     shapes[5] += (lower * below)[:, None] * np.array([0.0, -0.008, 0.0])  # lips_apart: lower lip down
     shapes[5] += ((1 - lower) * below)[:, None] * np.array([0.0, 0.003, 0.0])  # upper lip up
     brow = attrs["brow"] > 0
     for side in (-1.0, 1.0):
         center = np.array([side * 0.031, BROW_Y + 0.006, head_front_z(side * 0.031, BROW_Y)])
-        skin = np.exp(-np.sum((vertices - center) ** 2, 1) / (2 * 0.016 ** 2)) * face
+        skin = np.exp(-np.sum((vertices - center) ** 2, 1) / (2 * 0.016**2)) * face
         shapes[1] += skin[:, None] * np.array([0.0, 0.003, -0.0005])
     shapes[1][brow] = np.array([0.0, 0.006, -0.0006])
     eye = np.linalg.norm(attrs["eye_center"], axis=1) > 0
@@ -448,8 +476,13 @@ def _merge(parts: list[Part]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
             default = np.zeros((n, 3)) if key == "eye_center" else np.zeros(n)
             values.append(part.attributes.get(key, default))
         offset += n
-    return (np.concatenate(vertices), np.concatenate(faces), np.concatenate(weights), np.concatenate(colours),
-            {k: np.concatenate(v) for k, v in attrs.items()})
+    return (
+        np.concatenate(vertices),
+        np.concatenate(faces),
+        np.concatenate(weights),
+        np.concatenate(colours),
+        {k: np.concatenate(v) for k, v in attrs.items()},
+    )
 
 
 def build_avatar(skeleton: Skeleton | None = None) -> BodyModel:
@@ -475,9 +508,17 @@ def build_avatar(skeleton: Skeleton | None = None) -> BodyModel:
     shapedirs = np.zeros((len(vertices), 3, 10))
     shapedirs[:, :, 0] = 0.04 * (vertices - np.array([0.0, rest[:, 1].min() - 0.08, 0.0]))  # beta_0: body size
     return BodyModel(
-        v_template=vertices, faces=faces.astype(np.int64), weights=weights,
-        j_regressor=joint_regressor(vertices, rest), shapedirs=shapedirs, exprdirs=exprdirs, posedirs=None,
-        parents=tuple(skeleton.parents), colours=np.clip(colours, 0, 1), name="mannequin")
+        v_template=vertices,
+        faces=faces.astype(np.int64),
+        weights=weights,
+        j_regressor=joint_regressor(vertices, rest),
+        shapedirs=shapedirs,
+        exprdirs=exprdirs,
+        posedirs=None,
+        parents=tuple(skeleton.parents),
+        colours=np.clip(colours, 0, 1),
+        name="mannequin",
+    )
 
 
 def main(argv=None) -> int:

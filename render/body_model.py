@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from ecas.core.body import NUM_EXPRESSIONS, NUM_JOINTS
 from gesture.body.skeleton import PARENTS
 
 SHAPE_SPACE_DIM = 300  # SMPL-X shapedirs columns [0, 300) are body shape, [300, 400) expressions
@@ -21,7 +21,8 @@ SMPLX_HELP = (
     "The SMPL-X model is not shipped with this project. Download SMPLX_NEUTRAL_2020.npz from "
     "https://smpl-x.is.tue.mpg.de (free registration required; the SMPL-X Model License allows "
     "non-commercial research use only) and set render.body_model to its path, or leave render.body_model "
-    "empty to use the built-in mannequin.")
+    "empty to use the built-in mannequin."
+)
 REQUIRED_KEYS = ("v_template", "f", "J_regressor", "weights", "shapedirs")
 
 
@@ -90,15 +91,20 @@ def _body_model_from_arrays(data: dict, name: str) -> BodyModel:
     j_regressor = _dense(data["J_regressor"])
     shapedirs = _dense(data["shapedirs"])
     if v_template.shape != (n, 3) or faces.ndim != 2 or faces.shape[1] != 3 or faces.max() >= n:
-        raise BodyModelError(f"render.body_model: v_template {v_template.shape} and f {faces.shape} do not form "
-                             f"a mesh. {SMPLX_HELP}")
+        raise BodyModelError(
+            f"render.body_model: v_template {v_template.shape} and f {faces.shape} do not form a mesh. {SMPLX_HELP}"
+        )
     if weights.shape != (n, NUM_JOINTS) or j_regressor.shape != (NUM_JOINTS, n):
-        raise BodyModelError(f"render.body_model: weights {weights.shape} / J_regressor {j_regressor.shape} are not "
-                             f"SMPL-X's 55 joints over {n} vertices. {SMPLX_HELP}")
+        raise BodyModelError(
+            f"render.body_model: weights {weights.shape} / J_regressor {j_regressor.shape} are not "
+            f"SMPL-X's 55 joints over {n} vertices. {SMPLX_HELP}"
+        )
     n_dirs = SHAPE_SPACE_DIM + NUM_EXPRESSIONS
     if shapedirs.ndim != 3 or shapedirs.shape[:2] != (n, 3) or shapedirs.shape[2] < n_dirs:
-        raise BodyModelError(f"render.body_model: shapedirs {shapedirs.shape} lacks the 100 expression directions "
-                             f"(need (V, 3, >= 400), as in SMPLX_*_2020). {SMPLX_HELP}")
+        raise BodyModelError(
+            f"render.body_model: shapedirs {shapedirs.shape} lacks the 100 expression directions "
+            f"(need (V, 3, >= 400), as in SMPLX_*_2020). {SMPLX_HELP}"
+        )
     posedirs = _dense(data["posedirs"]) if "posedirs" in data else None
     if posedirs is not None and not np.any(posedirs):
         posedirs = None
@@ -107,12 +113,23 @@ def _body_model_from_arrays(data: dict, name: str) -> BodyModel:
         table = np.asarray(data["kintree_table"]).astype(np.int64)
         parents = tuple(-1 if i == 0 else int(p) for i, p in enumerate(table[0][:NUM_JOINTS]))
         if any(not 0 <= p < j for j, p in enumerate(parents[1:], start=1)):
-            raise BodyModelError(f"render.body_model: kintree_table's parents {parents} do not each come before their "
-                                 f"child. {SMPLX_HELP}")
+            raise BodyModelError(
+                f"render.body_model: kintree_table's parents {parents} do not each come before their "
+                f"child. {SMPLX_HELP}"
+            )
     colours = np.tile(np.asarray(CLAY_RGB), (n, 1))
-    return BodyModel(v_template, faces, weights, j_regressor, shapedirs[:, :, :SHAPE_SPACE_DIM],
-                     shapedirs[:, :, SHAPE_SPACE_DIM:SHAPE_SPACE_DIM + NUM_EXPRESSIONS], posedirs,
-                     parents, colours, name)
+    return BodyModel(
+        v_template,
+        faces,
+        weights,
+        j_regressor,
+        shapedirs[:, :, :SHAPE_SPACE_DIM],
+        shapedirs[:, :, SHAPE_SPACE_DIM : SHAPE_SPACE_DIM + NUM_EXPRESSIONS],
+        posedirs,
+        parents,
+        colours,
+        name,
+    )
 
 
 def export_smplx_npz(model: BodyModel, path: str | Path) -> Path:
@@ -124,18 +141,26 @@ def export_smplx_npz(model: BodyModel, path: str | Path) -> Path:
     if n < 9930:
         raise BodyModelError(f"{path}: smplx's landmark vertex ids need >= 9930 vertices, the model has {n}")
     shapedirs = np.zeros((n, 3, SHAPE_SPACE_DIM + NUM_EXPRESSIONS), np.float32)
-    shapedirs[:, :, :model.shapedirs.shape[2]] = model.shapedirs
+    shapedirs[:, :, : model.shapedirs.shape[2]] = model.shapedirs
     shapedirs[:, :, SHAPE_SPACE_DIM:] = model.exprdirs
     posedirs = np.zeros((n, 3, (NUM_JOINTS - 1) * 9), np.float32) if model.posedirs is None else model.posedirs
     kintree = np.array([[4294967295 if p < 0 else p for p in model.parents], np.arange(NUM_JOINTS)], np.int64)
     n_landmarks = 51
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
-        path, v_template=model.v_template.astype(np.float32), f=model.faces.astype(np.int64),
-        J_regressor=model.j_regressor.astype(np.float32), weights=model.weights.astype(np.float32),
-        kintree_table=kintree, shapedirs=shapedirs, posedirs=posedirs.astype(np.float32),
-        hands_componentsl=np.eye(45, dtype=np.float32), hands_componentsr=np.eye(45, dtype=np.float32),
-        hands_meanl=np.zeros(45, np.float32), hands_meanr=np.zeros(45, np.float32),
+        path,
+        v_template=model.v_template.astype(np.float32),
+        f=model.faces.astype(np.int64),
+        J_regressor=model.j_regressor.astype(np.float32),
+        weights=model.weights.astype(np.float32),
+        kintree_table=kintree,
+        shapedirs=shapedirs,
+        posedirs=posedirs.astype(np.float32),
+        hands_componentsl=np.eye(45, dtype=np.float32),
+        hands_componentsr=np.eye(45, dtype=np.float32),
+        hands_meanl=np.zeros(45, np.float32),
+        hands_meanr=np.zeros(45, np.float32),
         lmk_faces_idx=np.arange(n_landmarks, dtype=np.int64),
-        lmk_bary_coords=np.full((n_landmarks, 3), 1.0 / 3, np.float32))
+        lmk_bary_coords=np.full((n_landmarks, 3), 1.0 / 3, np.float32),
+    )
     return path

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Literal
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
 
 
 @dataclass(frozen=True)
@@ -17,20 +17,20 @@ class RenderConfig:
     both (e.g. 1280x720). Live mode drops a frame when its step is more than `max_lag_ms` old.
     """
 
-    body_model: Optional[str] = None
+    body_model: str | None = None
     betas: tuple[float, ...] = ()
     platform: Literal["osmesa", "egl"] = "osmesa"
     msaa_samples: int = 0
     size: int = 512
     live_size: int = 384
-    width: Optional[int] = None
-    height: Optional[int] = None
+    width: int | None = None
+    height: int | None = None
     camera: Literal["full", "upper", "face"] = "full"
     camera_smoothing: float = 0.9
     encoding: Literal["jpeg", "rgb24"] = "jpeg"
     jpeg_quality: int = 85
     max_lag_ms: float = 240.0
-    mp4_path: Optional[str] = None
+    mp4_path: str | None = None
     mp4_audio: Literal["mixed", "stereo"] = "mixed"
     mp4_crf: int = 20
     mp4_preset: str = "veryfast"

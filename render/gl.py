@@ -23,5 +23,6 @@ def select_platform(platform: str) -> None:
     if "OpenGL" in sys.modules and current != platform:
         raise GLPlatformError(
             f"OpenGL was already imported with PYOPENGL_PLATFORM={current!r}; {platform!r} must be chosen "
-            "before any OpenGL/pyrender import (one platform per process)")
+            "before any OpenGL/pyrender import (one platform per process)"
+        )
     os.environ["PYOPENGL_PLATFORM"] = platform

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse
 
-from core.body import NUM_JOINTS
+from ecas.core.body import NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_matrix_np
 from render.body_model import BodyModel
 
@@ -28,8 +28,8 @@ class Skinner:
         n = model.n_vertices
         v_shaped = model.v_template.copy()
         if betas is not None and np.size(betas):
-            betas = np.asarray(betas, dtype=np.float64).reshape(-1)[:model.shapedirs.shape[2]]
-            v_shaped = v_shaped + model.shapedirs[:, :, :len(betas)] @ betas
+            betas = np.asarray(betas, dtype=np.float64).reshape(-1)[: model.shapedirs.shape[2]]
+            v_shaped = v_shaped + model.shapedirs[:, :, : len(betas)] @ betas
         self._v_shaped = v_shaped  # (V, 3)
         self._face_rows = np.flatnonzero(np.any(model.exprdirs != 0, axis=(1, 2)))  # vertices expressions move
         self._exprdirs = model.exprdirs[self._face_rows].reshape(len(self._face_rows) * 3, -1)  # (V_face*3, 100)
@@ -38,14 +38,15 @@ class Skinner:
         self._weights = scipy.sparse.csr_matrix(np.where(np.abs(model.weights) > 1e-9, model.weights, 0.0))
         self.rest_joints = self._j_regressor @ v_shaped  # (55, 3) at zero expression
 
-    def __call__(self, poses: np.ndarray, trans: np.ndarray | None = None,
-                 expression: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(
+        self, poses: np.ndarray, trans: np.ndarray | None = None, expression: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         poses = np.asarray(poses, dtype=np.float64).reshape(NUM_JOINTS, 3)
         v = self._v_shaped
         if expression is not None:
-            expression = np.asarray(expression, dtype=np.float64).reshape(-1)[:self._exprdirs.shape[1]]
+            expression = np.asarray(expression, dtype=np.float64).reshape(-1)[: self._exprdirs.shape[1]]
             v = v.copy()
-            v[self._face_rows] += (self._exprdirs[:, :len(expression)] @ expression).reshape(-1, 3)
+            v[self._face_rows] += (self._exprdirs[:, : len(expression)] @ expression).reshape(-1, 3)
         rest = self._j_regressor @ v  # (55, 3)
         rotations = axis_angle_to_matrix_np(poses)  # (55, 3, 3)
         if self._posedirs is not None:
@@ -58,8 +59,9 @@ class Skinner:
         vertices = np.einsum("vab,vb->va", per_vertex[:, :9].reshape(-1, 3, 3), v) + per_vertex[:, 9:]
         return vertices, joints
 
-    def _chain(self, rotations: np.ndarray, rest: np.ndarray,
-               trans: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def _chain(
+        self, rotations: np.ndarray, rest: np.ndarray, trans: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Global rotations (55, 3, 3) and positions (55, 3): G_j = G_parent(j) @ [R_j | rest_j - rest_parent(j)],
         the root at rest_0 + trans."""
         parents = self.model.parents

@@ -35,8 +35,16 @@ def superellipse(angles: np.ndarray, exponent: float) -> tuple[np.ndarray, np.nd
     return np.sign(cos) * np.abs(cos) ** power, np.sign(sin) * np.abs(sin) ** power
 
 
-def loft(centers: np.ndarray, half_side: np.ndarray, half_front: np.ndarray, side: np.ndarray,
-         front: np.ndarray, n_around: int, exponent: float = 2.0, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def loft(
+    centers: np.ndarray,
+    half_side: np.ndarray,
+    half_front: np.ndarray,
+    side: np.ndarray,
+    front: np.ndarray,
+    n_around: int,
+    exponent: float = 2.0,
+    phase: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Closed lofted surface through K rings, with pole vertices at centers[0] and centers[-1].
 
     centers (K, 3); half_side, half_front (K,) ring radii (the first and last are ignored: they are poles);
@@ -47,8 +55,11 @@ def loft(centers: np.ndarray, half_side: np.ndarray, half_front: np.ndarray, sid
     angles = phase + np.linspace(0.0, 2 * np.pi, n_around, endpoint=False)
     u, v = superellipse(angles, exponent)
     inner = slice(1, len(centers) - 1)
-    rings = (centers[inner, None, :] + half_side[inner, None, None] * u[None, :, None] * side
-             + half_front[inner, None, None] * v[None, :, None] * front)  # (K-2, n, 3)
+    rings = (
+        centers[inner, None, :]
+        + half_side[inner, None, None] * u[None, :, None] * side
+        + half_front[inner, None, None] * v[None, :, None] * front
+    )  # (K-2, n, 3)
     vertices = np.concatenate([centers[:1], rings.reshape(-1, 3), centers[-1:]])
     return vertices, ring_faces(len(centers) - 2, n_around, outward=_winding_outward(centers, side, front))
 
@@ -86,9 +97,18 @@ def orthonormal_frame(axis: np.ndarray, hint: np.ndarray = np.array([0.0, 1.0, 0
     return side, front, axis
 
 
-def capsule(p0: np.ndarray, p1: np.ndarray, r0: float, r1: float, n_around: int, n_cap: int, n_body: int,
-            flatten: float = 1.0, hint: np.ndarray = np.array([0.0, 1.0, 0.0]),
-            exponent: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+def capsule(
+    p0: np.ndarray,
+    p1: np.ndarray,
+    r0: float,
+    r1: float,
+    n_around: int,
+    n_cap: int,
+    n_body: int,
+    flatten: float = 1.0,
+    hint: np.ndarray = np.array([0.0, 1.0, 0.0]),
+    exponent: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Tapered capsule from p0 to p1 with hemispherical ends; `flatten` scales the radius along `hint`."""
     side, front, axis = orthonormal_frame(p1 - p0, hint)
     length = np.linalg.norm(p1 - p0)
@@ -101,8 +121,9 @@ def capsule(p0: np.ndarray, p1: np.ndarray, r0: float, r1: float, n_around: int,
     return loft(centers, radius, radius * flatten, side, front, n_around, exponent)
 
 
-def ellipsoid(center: np.ndarray, radii: np.ndarray, n_around: int, n_rings: int,
-              axes: np.ndarray = np.eye(3)) -> tuple[np.ndarray, np.ndarray]:
+def ellipsoid(
+    center: np.ndarray, radii: np.ndarray, n_around: int, n_rings: int, axes: np.ndarray = np.eye(3)
+) -> tuple[np.ndarray, np.ndarray]:
     """Ellipsoid with semi-axes radii along the rows of `axes` (side, front, pole axis)."""
     theta = np.linspace(0.0, np.pi, n_rings + 2)
     centers = center + (-np.cos(theta) * radii[2])[:, None] * axes[2]
@@ -110,8 +131,9 @@ def ellipsoid(center: np.ndarray, radii: np.ndarray, n_around: int, n_rings: int
     return loft(centers, ring * radii[0], ring * radii[1], axes[0], axes[1], n_around)
 
 
-def rigid_part(name: str, vertices: np.ndarray, faces: np.ndarray, joint: int, n_joints: int,
-               rgb: tuple[float, float, float]) -> Part:
+def rigid_part(
+    name: str, vertices: np.ndarray, faces: np.ndarray, joint: int, n_joints: int, rgb: tuple[float, float, float]
+) -> Part:
     """A part skinned entirely to one joint with one colour."""
     weights = np.zeros((len(vertices), n_joints))
     weights[:, joint] = 1.0

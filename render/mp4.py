@@ -18,7 +18,7 @@ from pathlib import Path
 import av
 import numpy as np
 
-from core.timing import MOTION_FPS, SAMPLE_RATE_HZ
+from ecas.core.timing import MOTION_FPS, SAMPLE_RATE_HZ
 
 
 class Mp4Error(RuntimeError):
@@ -29,16 +29,27 @@ class Mp4WriteError(Mp4Error):
     """The file cannot be written; no later frame will fare better."""
 
     def __init__(self, path: Path, err: OSError):
-        super().__init__(f"cannot write {path} ([Errno {err.errno}] {err.strerror or err})"
-                         if err.errno else f"cannot write {path} ({err})")
+        super().__init__(
+            f"cannot write {path} ([Errno {err.errno}] {err.strerror or err})"
+            if err.errno
+            else f"cannot write {path} ({err})"
+        )
 
 
 class Mp4Writer:
     """Write (H, W, 3) uint8 frames, each with its `samples_per_frame` audio samples (mono or stereo float32)."""
 
-    def __init__(self, path: str | Path, width: int, height: int, fps: int = MOTION_FPS,
-                 sample_rate_hz: int = SAMPLE_RATE_HZ, channels: int = 1, crf: int = 20,
-                 preset: str = "veryfast") -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        width: int,
+        height: int,
+        fps: int = MOTION_FPS,
+        sample_rate_hz: int = SAMPLE_RATE_HZ,
+        channels: int = 1,
+        crf: int = 20,
+        preset: str = "veryfast",
+    ) -> None:
         if width % 2 or height % 2:
             raise Mp4Error(f"yuv420p needs an even frame size, got {width}x{height}")
         if sample_rate_hz % fps:
@@ -67,19 +78,23 @@ class Mp4Writer:
     def write(self, frame_rgb: np.ndarray, audio: np.ndarray) -> None:
         """frame_rgb (H, W, 3) uint8; audio (samples_per_frame,) or (samples_per_frame, channels) float32."""
         if frame_rgb.shape != (self.height, self.width, 3) or frame_rgb.dtype != np.uint8:
-            raise Mp4Error(f"frame must be ({self.height}, {self.width}, 3) uint8, "
-                           f"got {frame_rgb.shape} {frame_rgb.dtype}")
+            raise Mp4Error(
+                f"frame must be ({self.height}, {self.width}, 3) uint8, got {frame_rgb.shape} {frame_rgb.dtype}"
+            )
         audio = np.asarray(audio, dtype=np.float32)
         if audio.ndim == 1:
             audio = audio[:, None]
         if audio.shape[0] != self.samples_per_frame or audio.shape[1] not in (1, self.channels):
-            raise Mp4Error(f"audio must be ({self.samples_per_frame},) or ({self.samples_per_frame}, {self.channels}) "
-                           f"per frame, got {audio.shape}")
+            raise Mp4Error(
+                f"audio must be ({self.samples_per_frame},) or ({self.samples_per_frame}, {self.channels}) "
+                f"per frame, got {audio.shape}"
+            )
         planar = np.ascontiguousarray(np.broadcast_to(audio, (self.samples_per_frame, self.channels)).T)  # (C, N)
         video_frame = av.VideoFrame.from_ndarray(frame_rgb, format="rgb24")
         video_frame.pts = self.frames_written
-        audio_frame = av.AudioFrame.from_ndarray(np.clip(planar, -1.0, 1.0), format="fltp",
-                                                 layout=self._audio.layout.name)
+        audio_frame = av.AudioFrame.from_ndarray(
+            np.clip(planar, -1.0, 1.0), format="fltp", layout=self._audio.layout.name
+        )
         audio_frame.sample_rate = self.sample_rate_hz
         audio_frame.pts = self.frames_written * self.samples_per_frame
         try:
@@ -118,7 +133,7 @@ class Mp4Writer:
         finally:
             self.tmp_path.unlink(missing_ok=True)
 
-    def __enter__(self) -> "Mp4Writer":
+    def __enter__(self) -> Mp4Writer:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -187,4 +202,3 @@ def mix_conversation(agent_pcm: np.ndarray, user_pcm: np.ndarray, stereo: bool) 
     if stereo:
         return np.stack([user, agent], axis=1)
     return np.clip(user + agent, -1.0, 1.0)
-

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.threads import limit_threads
-from core.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
+from ecas.core.threads import limit_threads
+from ecas.core.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
 from render.renderer import CAMERA_PRESETS
 
 EXIT_USAGE = 2
@@ -36,8 +36,8 @@ class UsageError(ValueError):
 
 def load_motion_25fps(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """poses (T, 55, 3), trans (T, 3), expressions (T, 100), betas (B,) at 25 fps."""
-    from gesture.data.beat2 import read_motion
     from gesture.body.rotation import resample_motion
+    from gesture.data.beat2 import read_motion
 
     motion = read_motion(path)
     poses, trans, expressions = motion.poses, motion.trans, motion.expressions
@@ -51,10 +51,10 @@ def frame_audio(wav_path: str | Path | None, n_frames: int) -> np.ndarray:
     total = n_frames * FRAME_SAMPLES
     pcm = np.zeros(total, np.float32)
     if wav_path is not None:
-        from core.audio_file import load_audio
+        from ecas.core.audio_file import load_audio
 
         speech = load_audio(wav_path, SAMPLE_RATE_HZ)[:total]
-        pcm[:len(speech)] = speech
+        pcm[: len(speech)] = speech
     return pcm.reshape(n_frames, FRAME_SAMPLES)
 
 
@@ -90,8 +90,19 @@ class EncoderThread:
         self.writer.close(commit=commit)
 
 
-def render_motion(motion_path, wav_path, mp4_path, camera="full", width=512, height=512, platform="osmesa",
-                  body_model=None, max_frames=None, start_frame=0, progress=True) -> dict:
+def render_motion(
+    motion_path,
+    wav_path,
+    mp4_path,
+    camera="full",
+    width=512,
+    height=512,
+    platform="osmesa",
+    body_model=None,
+    max_frames=None,
+    start_frame=0,
+    progress=True,
+) -> dict:
     """Render the motion file to `mp4_path`; returns timing numbers."""
     from render.mp4 import Mp4Writer
     from render.view import AvatarView, load_body
@@ -116,12 +127,19 @@ def render_motion(motion_path, wav_path, mp4_path, camera="full", width=512, hei
         view.close()
     wall_s = time.perf_counter() - t0
     n = stop - start_frame
-    return {"frames": n, "video_s": n / MOTION_FPS, "wall_s": wall_s, "ms_per_frame": 1000 * wall_s / n,
-            "x_real_time": (n / MOTION_FPS) / wall_s, "vertices": body.n_vertices}
+    return {
+        "frames": n,
+        "video_s": n / MOTION_FPS,
+        "wall_s": wall_s,
+        "ms_per_frame": 1000 * wall_s / n,
+        "x_real_time": (n / MOTION_FPS) / wall_s,
+        "vertices": body.n_vertices,
+    }
 
 
-def render_still(motion_path, png_path, at_s: float, camera="full", width=512, height=512, platform="osmesa",
-                 body_model=None) -> Path:
+def render_still(
+    motion_path, png_path, at_s: float, camera="full", width=512, height=512, platform="osmesa", body_model=None
+) -> Path:
     """Render the frame at `at_s` seconds to a PNG (the camera tracks the second before it, as in the video)."""
     from PIL import Image
 
@@ -129,8 +147,9 @@ def render_still(motion_path, png_path, at_s: float, camera="full", width=512, h
 
     poses, trans, expressions, betas = load_motion_25fps(motion_path)
     target = min(int(round(at_s * MOTION_FPS)), len(poses) - 1)
-    view = AvatarView(load_body(body_model), width, height, camera=camera, platform=platform,
-                      betas=betas if body_model else None)
+    view = AvatarView(
+        load_body(body_model), width, height, camera=camera, platform=platform, betas=betas if body_model else None
+    )
     try:
         for i in range(max(0, target - MOTION_FPS), target + 1):
             image = view.frame(poses[i], trans[i], expressions[i])
@@ -178,7 +197,7 @@ def check_inputs(args: argparse.Namespace) -> int:
     if args.start * MOTION_FPS >= len(poses):
         raise UsageError(f"--start {args.start}: the motion lasts {len(poses) / MOTION_FPS:.2f} s")
     if args.wav is not None:
-        from core.audio_file import check_audio_file
+        from ecas.core.audio_file import check_audio_file
 
         check_audio_file(args.wav)  # decoded once, later; a decoding problem is caught there
     return len(poses)
@@ -202,8 +221,8 @@ def main(argv=None) -> int:
     p.add_argument("--seconds", type=float, help="render only this many seconds")
     args = p.parse_args(argv)
 
-    from core.audio_file import AudioFileError
-    from core.errors import DataError
+    from ecas.core.audio_file import AudioFileError
+    from ecas.core.errors import DataError
     from render.body_model import BodyModelError
     from render.mp4 import Mp4Error, Mp4WriteError
 
@@ -211,22 +230,40 @@ def main(argv=None) -> int:
         width, height = check_args(args)
         check_inputs(args)
         if args.still:
-            render_still(args.motion, args.still, args.start, camera=args.camera, width=width, height=height,
-                         platform=args.platform, body_model=args.body_model)
+            render_still(
+                args.motion,
+                args.still,
+                args.start,
+                camera=args.camera,
+                width=width,
+                height=height,
+                platform=args.platform,
+                body_model=args.body_model,
+            )
             print(f"{args.still}: frame at {args.start:.2f} s, camera {args.camera}")
             return 0
-        stats = render_motion(args.motion, args.wav, args.mp4, camera=args.camera, width=width, height=height,
-                              platform=args.platform, body_model=args.body_model,
-                              max_frames=None if args.seconds is None else int(round(args.seconds * MOTION_FPS)),
-                              start_frame=int(round(args.start * MOTION_FPS)))
+        stats = render_motion(
+            args.motion,
+            args.wav,
+            args.mp4,
+            camera=args.camera,
+            width=width,
+            height=height,
+            platform=args.platform,
+            body_model=args.body_model,
+            max_frames=None if args.seconds is None else int(round(args.seconds * MOTION_FPS)),
+            start_frame=int(round(args.start * MOTION_FPS)),
+        )
     except Mp4WriteError as err:  # disk full, permission: not a usage mistake
         print(f"error: {err}", file=sys.stderr)
         return 1
     except (UsageError, DataError, AudioFileError, BodyModelError, Mp4Error) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    print(f"{args.mp4}: {stats['frames']} frames ({stats['video_s']:.2f} s) in {stats['wall_s']:.1f} s, "
-          f"{stats['ms_per_frame']:.1f} ms/frame, {stats['x_real_time']:.2f}x real time")
+    print(
+        f"{args.mp4}: {stats['frames']} frames ({stats['video_s']:.2f} s) in {stats['wall_s']:.1f} s, "
+        f"{stats['ms_per_frame']:.1f} ms/frame, {stats['x_real_time']:.2f}x real time"
+    )
     return 0
 
 

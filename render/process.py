@@ -14,16 +14,16 @@ from __future__ import annotations
 import io
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
-from core.messages import DialogueStep, GestureStep, Message, RenderFrame
-from core.component import RunContext, StageFailed
-from core.timing import FRAME_SAMPLES, FRAMES_PER_STEP
+from ecas.core.component import RunContext, StageFailed
+from ecas.core.messages import DialogueStep, GestureStep, Message, RenderFrame
+from ecas.core.timing import FRAME_SAMPLES, FRAMES_PER_STEP
 from render.config import RenderConfig
-from render.mp4 import BackgroundMp4Writer, Mp4Writer, Mp4WriteError, mix_conversation
+from render.mp4 import BackgroundMp4Writer, Mp4WriteError, Mp4Writer, mix_conversation
 from render.view import AvatarView, load_body
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,7 @@ class StepTimeline:
                 rgb = self.last_frame
                 self.repeated_frames += 1
             self.last_frame = rgb
-            self.writer.write(rgb, audio[index * FRAME_SAMPLES:(index + 1) * FRAME_SAMPLES])
+            self.writer.write(rgb, audio[index * FRAME_SAMPLES : (index + 1) * FRAME_SAMPLES])
 
     def finish(self) -> None:
         self._drain(final=True)
@@ -96,16 +96,30 @@ class RenderComponent:
         self.cfg, self.live = cfg, run.live
         self.width, self.height = cfg.frame_size(run.live)
         betas = np.asarray(cfg.betas, dtype=np.float64) if cfg.betas else None
-        self.view = AvatarView(load_body(cfg.body_model), self.width, self.height, camera=cfg.camera,
-                               platform=cfg.platform, msaa_samples=cfg.msaa_samples,
-                               camera_smoothing=cfg.camera_smoothing, betas=betas)
+        self.view = AvatarView(
+            load_body(cfg.body_model),
+            self.width,
+            self.height,
+            camera=cfg.camera,
+            platform=cfg.platform,
+            msaa_samples=cfg.msaa_samples,
+            camera_smoothing=cfg.camera_smoothing,
+            betas=betas,
+        )
         self.view.frame(np.zeros((55, 3)), np.array([0.0, 1.3, 0.0]), np.zeros(100))  # warm-up: GL upload
         self.view.reset()
         self.timeline: StepTimeline | None = None
         if cfg.mp4_path:
-            writer = BackgroundMp4Writer(Mp4Writer(Path(cfg.mp4_path), self.width, self.height,
-                                                   channels=2 if cfg.mp4_audio == "stereo" else 1, crf=cfg.mp4_crf,
-                                                   preset=cfg.mp4_preset))
+            writer = BackgroundMp4Writer(
+                Mp4Writer(
+                    Path(cfg.mp4_path),
+                    self.width,
+                    self.height,
+                    channels=2 if cfg.mp4_audio == "stereo" else 1,
+                    crf=cfg.mp4_crf,
+                    preset=cfg.mp4_preset,
+                )
+            )
             self.timeline = StepTimeline(writer, cfg.mp4_audio == "stereo", run.live)
             self.timeline_failed = False
         self.rendered_frames = 0
@@ -113,9 +127,12 @@ class RenderComponent:
         self.flushed = False
 
     def counters(self) -> dict[str, int]:
-        return {"rendered_frames": self.rendered_frames, "dropped_frames": self.dropped_frames,
-                "mp4_frames": 0 if self.timeline is None else self.timeline.writer.frames_written,
-                "mp4_repeated_frames": 0 if self.timeline is None else self.timeline.repeated_frames}
+        return {
+            "rendered_frames": self.rendered_frames,
+            "dropped_frames": self.dropped_frames,
+            "mp4_frames": 0 if self.timeline is None else self.timeline.writer.frames_written,
+            "mp4_repeated_frames": 0 if self.timeline is None else self.timeline.repeated_frames,
+        }
 
     def partial_files(self) -> list[Path]:
         """The MP4 being written under its temporary name (the supervisor removes it if this process is killed)."""
@@ -150,8 +167,11 @@ class RenderComponent:
             if self.timeline is not None:
                 self.timeline.add_frame(msg.step, index, rgb)
             image = encode_jpeg(rgb, self.cfg.jpeg_quality) if self.cfg.encoding == "jpeg" else rgb
-            outputs.append(RenderFrame(frame_index=index, width=self.width, height=self.height,
-                                       encoding=self.cfg.encoding, image=image))
+            outputs.append(
+                RenderFrame(
+                    frame_index=index, width=self.width, height=self.height, encoding=self.cfg.encoding, image=image
+                )
+            )
         return outputs
 
     def flush(self) -> Sequence[Message]:

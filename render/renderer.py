@@ -107,8 +107,9 @@ def disc_mesh(radius_m: float, n_rings: int, n_segments: int, center_rgb, rim_rg
     """A flat upward-facing disc whose colour blends from centre to rim (a smoothstep): vertices, faces, colours."""
     radii = np.linspace(0.0, radius_m, n_rings + 1)[1:]
     angles = np.linspace(0.0, 2 * np.pi, n_segments, endpoint=False)
-    ring_xyz = np.stack(np.broadcast_arrays(radii[:, None] * np.cos(angles), y_m,
-                                            radii[:, None] * np.sin(angles)), axis=-1)  # (R, S, 3)
+    ring_xyz = np.stack(
+        np.broadcast_arrays(radii[:, None] * np.cos(angles), y_m, radii[:, None] * np.sin(angles)), axis=-1
+    )  # (R, S, 3)
     vertices = np.concatenate([[[0.0, y_m, 0.0]], ring_xyz.reshape(-1, 3)])
     t = np.concatenate([[0.0], np.repeat(radii / radius_m, n_segments)])
     blend = (t * t * (3 - 2 * t))[:, None]
@@ -130,9 +131,17 @@ class MeshRenderer:
     `msaa_samples=0` turns pyrender's fixed 4x multisampling off on EGL; OSMesa renders without it anyway.
     """
 
-    def __init__(self, faces: np.ndarray, colours_rgb: np.ndarray, width: int, height: int,
-                 platform: str = "osmesa", msaa_samples: int = 0, in_place: bool = True,
-                 yfov_deg: float = 30.0) -> None:
+    def __init__(
+        self,
+        faces: np.ndarray,
+        colours_rgb: np.ndarray,
+        width: int,
+        height: int,
+        platform: str = "osmesa",
+        msaa_samples: int = 0,
+        in_place: bool = True,
+        yfov_deg: float = 30.0,
+    ) -> None:
         select_platform(platform)
         import pyrender  # after select_platform: binds PyOpenGL to the chosen platform
 
@@ -149,12 +158,16 @@ class MeshRenderer:
         self._interleaved = np.empty((n_vertices, 10), dtype=np.float32)  # [pos 3 | normal 3 | rgba 4]
         self._interleaved[:, 6:] = self._colours
         self._material = pyrender.MetallicRoughnessMaterial(
-            baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0, roughnessFactor=0.75)
+            baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0, roughnessFactor=0.75
+        )
 
         self.scene = pyrender.Scene(bg_color=(*BACKGROUND_RGB, 1.0), ambient_light=(0.42, 0.42, 0.43))
         self._add_lights()
-        self._camera_node = self._add(camera=pyrender.PerspectiveCamera(
-            yfov=np.radians(yfov_deg), znear=0.05, zfar=30.0, aspectRatio=width / height))
+        self._camera_node = self._add(
+            camera=pyrender.PerspectiveCamera(
+                yfov=np.radians(yfov_deg), znear=0.05, zfar=30.0, aspectRatio=width / height
+            )
+        )
         self._ground_node = self._add_disc(GROUND_RADIUS_M, 1, 72, GROUND_RGB, GROUND_RGB, 0.0)
         self._shadow_node = self._add_disc(SHADOW_RADIUS_M, 8, 48, SHADOW_RGB, GROUND_RGB, 0.002)
         self._mesh_node = None
@@ -174,19 +187,25 @@ class MeshRenderer:
         """Soft three-point lighting: a warm key from the upper left, a cool fill from the right, a rim from behind."""
         pyrender = self._pyrender
         for rgb, intensity, yaw_deg, pitch_deg in (
-                ((1.0, 0.97, 0.92), 0.72, -35.0, -35.0),
-                ((0.85, 0.9, 1.0), 0.3, 45.0, -15.0),
-                ((1.0, 1.0, 1.0), 0.35, 160.0, -30.0)):
-            self._add(light=pyrender.DirectionalLight(color=rgb, intensity=intensity),
-                      matrix=_light_pose(yaw_deg, pitch_deg))
+            ((1.0, 0.97, 0.92), 0.72, -35.0, -35.0),
+            ((0.85, 0.9, 1.0), 0.3, 45.0, -15.0),
+            ((1.0, 1.0, 1.0), 0.35, 160.0, -30.0),
+        ):
+            self._add(
+                light=pyrender.DirectionalLight(color=rgb, intensity=intensity), matrix=_light_pose(yaw_deg, pitch_deg)
+            )
 
     def _add_disc(self, radius_m, n_rings, n_segments, center_rgb, rim_rgb, y_m):
         """An unlit disc: its vertex colours are final (a soft-lit floor is nearly uniform anyway)."""
         pyrender = self._pyrender
         vertices, faces, colours = disc_mesh(radius_m, n_rings, n_segments, center_rgb, rim_rgb, y_m)
-        primitive = pyrender.Primitive(positions=vertices, indices=faces,  # no normals: unlit (see mesh.vert)
-                                       color_0=np.concatenate([colours, np.ones((len(colours), 1), np.float32)], 1),
-                                       material=self._material, mode=pyrender.constants.GLTF.TRIANGLES)
+        primitive = pyrender.Primitive(
+            positions=vertices,
+            indices=faces,  # no normals: unlit (see mesh.vert)
+            color_0=np.concatenate([colours, np.ones((len(colours), 1), np.float32)], 1),
+            material=self._material,
+            mode=pyrender.constants.GLTF.TRIANGLES,
+        )
         return self._add(mesh=pyrender.Mesh([primitive]))
 
     def set_ground_center(self, floor_y_m: float, ground_xz: np.ndarray, shadow_xz: np.ndarray) -> None:
@@ -207,8 +226,13 @@ class MeshRenderer:
         if self._mesh_node is not None:
             self.scene.remove_node(self._mesh_node)
         self._primitive = pyrender.Primitive(
-            positions=data[:, :3].copy(), normals=data[:, 3:6].copy(), color_0=self._colours,
-            indices=self.faces, material=self._material, mode=pyrender.constants.GLTF.TRIANGLES)
+            positions=data[:, :3].copy(),
+            normals=data[:, 3:6].copy(),
+            color_0=self._colours,
+            indices=self.faces,
+            material=self._material,
+            mode=pyrender.constants.GLTF.TRIANGLES,
+        )
         self._mesh_node = self._add(mesh=pyrender.Mesh([self._primitive]))
 
     def _upload_in_place(self, vertices: np.ndarray) -> None:
@@ -307,8 +331,10 @@ def _program_cache(pyrender):
         def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
             key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
             if key not in self._program_cache:
-                paths = [None if name is None else str(Path(self.shader_dir) / name)
-                         for name in (vertex_shader, fragment_shader, geometry_shader)]
+                paths = [
+                    None if name is None else str(Path(self.shader_dir) / name)
+                    for name in (vertex_shader, fragment_shader, geometry_shader)
+                ]
                 self._program_cache[key] = ShaderProgram(*paths, defines=defines)
             return self._program_cache[key]
 

@@ -7,10 +7,11 @@ import av
 import numpy as np
 import pytest
 
-from core.timing import MOTION_FPS
+from ecas.core.paths import data_root
+from ecas.core.timing import MOTION_FPS
 from render.renderer import BACKGROUND_RGB
 
-BEAT2_NPZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+BEAT2_NPZ = data_root() / "beat2" / "2_scott_0_1_1.npz"
 BEAT2_WAV = BEAT2_NPZ.with_suffix(".wav")
 
 needs_osmesa = pytest.mark.skipif(ctypes.util.find_library("OSMesa") is None, reason="libOSMesa is not installed")
@@ -22,7 +23,7 @@ def silhouette(rgb: np.ndarray, ground_rows: float = 0.0) -> np.ndarray:
     background = np.asarray(BACKGROUND_RGB) * 255
     mask = np.abs(rgb.astype(np.float64) - background).max(axis=2) > 12  # the background is uniform
     if ground_rows:
-        mask[int(rgb.shape[0] * (1 - ground_rows)):] = False
+        mask[int(rgb.shape[0] * (1 - ground_rows)) :] = False
     return mask
 
 
@@ -35,9 +36,11 @@ def silhouette_center(mask: np.ndarray) -> tuple[float, float]:
 def decode(path: Path) -> dict:
     """Streams, codecs, decoded video frames and audio samples of an MP4."""
     with av.open(str(path)) as container:
-        info = {"streams": [(s.type, s.codec_context.name) for s in container.streams],
-                "pix_fmt": container.streams.video[0].codec_context.pix_fmt,
-                "duration_s": float(container.duration) / av.time_base}
+        info = {
+            "streams": [(s.type, s.codec_context.name) for s in container.streams],
+            "pix_fmt": container.streams.video[0].codec_context.pix_fmt,
+            "duration_s": float(container.duration) / av.time_base,
+        }
         info["frames"] = [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
     with av.open(str(path)) as container:
         audio = [f.to_ndarray() for f in container.decode(audio=0)]

@@ -24,14 +24,24 @@ class AvatarView:
     the pelvis.
     """
 
-    def __init__(self, body: BodyModel, width: int, height: int, camera: str = "full", platform: str = "osmesa",
-                 msaa_samples: int = 0, camera_smoothing: float = 0.9, betas: np.ndarray | None = None,
-                 in_place: bool = True) -> None:
+    def __init__(
+        self,
+        body: BodyModel,
+        width: int,
+        height: int,
+        camera: str = "full",
+        platform: str = "osmesa",
+        msaa_samples: int = 0,
+        camera_smoothing: float = 0.9,
+        betas: np.ndarray | None = None,
+        in_place: bool = True,
+    ) -> None:
         self.body = body
         self.skinner = Skinner(body, betas)
         self.rig = CameraRig(camera, camera_smoothing)
-        self.renderer = MeshRenderer(body.faces, body.colours, width, height, platform=platform,
-                                     msaa_samples=msaa_samples, in_place=in_place)
+        self.renderer = MeshRenderer(
+            body.faces, body.colours, width, height, platform=platform, msaa_samples=msaa_samples, in_place=in_place
+        )
         self._floor_y: float | None = None
         self._ground_xz: np.ndarray | None = None
 

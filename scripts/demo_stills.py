@@ -3,6 +3,7 @@ fastest arm movement while it speaks.
 
     .venv/bin/python scripts/demo_stills.py [--mp4 out/demo.mp4] [--report out/demo-report] [--out docs]
 """
+
 import argparse
 import json
 from pathlib import Path
@@ -53,11 +54,15 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("docs"))
     args = parser.parse_args()
     user, agent = turns(args.report, "user"), turns(args.report, "agent")
-    save_frames(args.mp4, {
-        "listening": sum(user[0]) / 2,
-        "answering": agent[0][0] + 0.5,
-        "gesturing": fastest_arm_moment_s(args.report, agent),
-    }, args.out)
+    save_frames(
+        args.mp4,
+        {
+            "listening": sum(user[0]) / 2,
+            "answering": agent[0][0] + 0.5,
+            "gesturing": fastest_arm_moment_s(args.report, agent),
+        },
+        args.out,
+    )
 
 
 if __name__ == "__main__":

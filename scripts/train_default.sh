@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduce the shipped default agent on CPU: synthetic dyadic sessions (+ the real BEAT2 clip) -> the three region
 # codecs -> optional decoder fine-tuning (DECODER_REGIONS) -> LM tokens -> the gesture LM ->
-# checkpoints/codecs/{upper,lower,face} and checkpoints/gesture_lm. The decoder stage freezes the encoders and
+# ecas/checkpoints/codecs/{upper,lower,face} and ecas/checkpoints/gesture_lm. The decoder stage freezes the encoders and
 # quantizers, so it never changes the LM tokens.
 #
 #   bash scripts/train_default.sh                 # the shipped run (about 1.5 hours of wall time on 2 cores)
@@ -23,16 +23,16 @@ CODEC_SESSIONS=${CODEC_SESSIONS:-24}  # the codecs on the first ones
 MINUTES=${MINUTES:-3}
 SEED=${SEED:-0}
 BEAT2_CLIP=${BEAT2_CLIP:-../shared/data/beat2/2_scott_0_1_1}
-CODEC_CONFIG=${CODEC_CONFIG:-configs/codec/default_small.yaml}
-LM_CONFIG=${LM_CONFIG:-configs/lm/default_small.yaml}
+CODEC_CONFIG=${CODEC_CONFIG:-ecas/configs/codec/default_small.yaml}
+LM_CONFIG=${LM_CONFIG:-ecas/configs/lm/default_small.yaml}
 CODEC_STEPS=${CODEC_STEPS:-}  # every region, when set (tiny runs); otherwise each region's own below
 UPPER_CODEC_STEPS=${UPPER_CODEC_STEPS:-${CODEC_STEPS:-12000}}  # held out (region alone) 16.0 mm at 8000 steps
 LOWER_CODEC_STEPS=${LOWER_CODEC_STEPS:-${CODEC_STEPS:-5000}}  # held out 14.3 mm at 1500 steps, still falling
 FACE_CODEC_STEPS=${FACE_CODEC_STEPS:-${CODEC_STEPS:-5000}}  # the face needs more steps to carry blinks as well as the jaw
 CODEC_REGIONS=${CODEC_REGIONS:-upper lower face}  # the codecs trained here; the others are copied from ...
 CODECS_FROM=${CODECS_FROM:-}  # ... this earlier run's $WORK (codecs/<region>, codec_<region>.json, its wall time)
-DECODER_CONFIG=${DECODER_CONFIG:-configs/codec/default_small_finetune.yaml}
-DECODER_REGIONS=${DECODER_REGIONS:-}  # none for the current ship (configs/codec/default_small_finetune.yaml says why)
+DECODER_CONFIG=${DECODER_CONFIG:-ecas/configs/codec/default_small_finetune.yaml}
+DECODER_REGIONS=${DECODER_REGIONS:-}  # none for the current ship (ecas/configs/codec/default_small_finetune.yaml says why)
 DECODER_STEPS=${DECODER_STEPS:-}  # every region, when set (tiny runs); otherwise each region's own below
 UPPER_DECODER_STEPS=${UPPER_DECODER_STEPS:-${DECODER_STEPS:-4000}}
 LOWER_DECODER_STEPS=${LOWER_DECODER_STEPS:-${DECODER_STEPS:-3000}}

@@ -8,15 +8,23 @@ inside functions count too: a lazy import is still a dependency.
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
 
-COMMANDS = ("gesture.evaluate", "gesture.suite", "gesture.realism", "gesture.train_codec", "gesture.train_lm",
-            "gesture.convert_miburi", "gesture.data.synthetic", "gesture.data.tokenize")  # kept command names
+COMMANDS = (
+    "gesture.evaluate",
+    "gesture.suite",
+    "gesture.realism",
+    "gesture.train_codec",
+    "gesture.train_lm",
+    "gesture.convert_miburi",
+    "gesture.data.synthetic",
+    "gesture.data.tokenize",
+)  # kept command names
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("core",),  # timing, body constants, spec, messages, bus, config loader, component contract
+    ("ecas.core",),  # timing, body constants, spec, messages, bus, config loader, component contract
     ("gesture.nn", "gesture.body"),  # network blocks and step weights; body maths
     ("dialogue", "gesture.data"),  # the dialogue system; reading and chunking motion data
     ("render", "gesture.synth", "gesture.codec"),  # the avatar; synthetic conversations; the motion codecs
@@ -25,7 +33,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("gesture.release",),  # the MIBURI release converter
     ("gesture.eval",),  # metrics, evaluation, quality suite, realism report
     ("agent",),  # the application: sections, supervisor, stage runner, io, dashboard
-    ("launch", "bench", "scripts", *COMMANDS),  # entry points
+    ("launch", "bench", "scripts", "ecas", *COMMANDS),  # entry points
 )
 ROOTS = frozenset(c.split(".")[0] for layer in LAYERS for c in layer)
 
@@ -58,8 +66,9 @@ def imports_of(source: str, modules: Iterable[str]) -> set[str]:
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            found.update(f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in known else node.module
-                         for a in node.names)
+            found.update(
+                f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in known else node.module for a in node.names
+            )
     return {name for name in found if name.split(".")[0] in ROOTS}
 
 

@@ -10,13 +10,13 @@ import json
 import os
 import signal
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
-from core.messages import AudioUser, DialogueStep, GestureStep, Message, MsgpackSerializer, RenderFrame
-from core.component import RunContext
-from core.timing import FRAMES_PER_STEP
+from ecas.core.component import RunContext
+from ecas.core.messages import AudioUser, DialogueStep, GestureStep, Message, MsgpackSerializer, RenderFrame
+from ecas.core.timing import FRAMES_PER_STEP
 
 KILL_AT_STEP = "TEST_KILL_AT_STEP"  # the stage's process SIGKILLs itself at this step
 CORRUPT_AT_STEP = "TEST_CORRUPT_AT_STEP"  # the dialogue stage sends one truncated frame at this step
@@ -45,8 +45,16 @@ class EchoDialogue(_Passive):
         _maybe_die(msg.step)
         level = int(np.clip(np.abs(msg.pcm).mean() * 1000, 0, 1000))
         codes = np.full(8, level, np.int32)
-        return [DialogueStep(agent_pcm=msg.pcm.copy(), user_pcm=msg.pcm.copy(), agent_codes=codes,
-                             user_codes=codes, text_token=msg.step % 7, text_piece=f"w{msg.step}")]
+        return [
+            DialogueStep(
+                agent_pcm=msg.pcm.copy(),
+                user_pcm=msg.pcm.copy(),
+                agent_codes=codes,
+                user_codes=codes,
+                text_token=msg.step % 7,
+                text_piece=f"w{msg.step}",
+            )
+        ]
 
 
 class WaveGesture(_Passive):
@@ -58,9 +66,15 @@ class WaveGesture(_Passive):
         _maybe_die(msg.step)
         poses = np.zeros((FRAMES_PER_STEP, 55, 3), np.float32)
         poses[:, 17, 2] = np.sin(msg.step * 0.1)
-        return [GestureStep(poses=poses, trans=np.zeros((FRAMES_PER_STEP, 3), np.float32),
-                            expressions=np.zeros((FRAMES_PER_STEP, 100), np.float32),
-                            tokens=np.full(20, msg.step, np.int32), va_prob=0.5)]
+        return [
+            GestureStep(
+                poses=poses,
+                trans=np.zeros((FRAMES_PER_STEP, 3), np.float32),
+                expressions=np.zeros((FRAMES_PER_STEP, 100), np.float32),
+                tokens=np.full(20, msg.step, np.int32),
+                va_prob=0.5,
+            )
+        ]
 
 
 class Recorder(_Passive):
@@ -73,12 +87,24 @@ class Recorder(_Passive):
     def handle(self, msg: Message) -> Sequence[Message]:
         if isinstance(msg, GestureStep):
             time.sleep(self.sleep_s)
-        self.log.write(json.dumps({"topic": msg.topic, "step": msg.step, "seq": msg.seq,
-                                   "t_origin_ns": msg.t_origin_ns, "t_done_ns": time.monotonic_ns()}) + "\n")
+        self.log.write(
+            json.dumps(
+                {
+                    "topic": msg.topic,
+                    "step": msg.step,
+                    "seq": msg.seq,
+                    "t_origin_ns": msg.t_origin_ns,
+                    "t_done_ns": time.monotonic_ns(),
+                }
+            )
+            + "\n"
+        )
         if not isinstance(msg, GestureStep):
             return ()
-        return [RenderFrame(frame_index=i, width=4, height=4, image=np.full((4, 4, 3), msg.step % 256, np.uint8))
-                for i in range(FRAMES_PER_STEP)]
+        return [
+            RenderFrame(frame_index=i, width=4, height=4, image=np.full((4, 4, 3), msg.step % 256, np.uint8))
+            for i in range(FRAMES_PER_STEP)
+        ]
 
     def close(self) -> None:
         self.log.close()

@@ -6,14 +6,15 @@ import numpy as np
 import soundfile as sf
 from scipy.signal import resample_poly
 
-from core.config import build_dataclass
-from core.messages import AudioUser
-from core.component import RunContext
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.config import DialogueConfig
 from dialogue.process import create_component
+from ecas.core.component import RunContext
+from ecas.core.config import build_dataclass
+from ecas.core.messages import AudioUser
+from ecas.core.paths import data_root
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED_DATA = data_root()
 LIBRIVOX = SHARED_DATA / "speech" / "librivox_0870.wav"
 BEAT2_WAV = SHARED_DATA / "beat2" / "2_scott_0_1_1.wav"
 
@@ -30,7 +31,7 @@ def silence(seconds: float) -> np.ndarray:
 def blocks(pcm: np.ndarray) -> list[np.ndarray]:
     n = -(-len(pcm) // STEP_SAMPLES) * STEP_SAMPLES
     padded = np.concatenate([pcm, np.zeros(n - len(pcm), np.float32)])
-    return [padded[i:i + STEP_SAMPLES] for i in range(0, n, STEP_SAMPLES)]
+    return [padded[i : i + STEP_SAMPLES] for i in range(0, n, STEP_SAMPLES)]
 
 
 def dialogue_cfg(**section) -> DialogueConfig:

@@ -4,14 +4,14 @@ slow motion, streams as one call, and is wired into the generator and the `gestu
 import numpy as np
 import pytest
 
-from core.config import ConfigError
-from core.timing import MOTION_FPS
+from ecas.core.config import ConfigError
+from ecas.core.timing import MOTION_FPS
 from gesture.alternation_filter import AlternationFilter
 from gesture.config import TORSO_AND_LEG_JOINTS, AlternationFilterConfig
 from gesture.eval.realism import angular_speeds
 from gesture.generator import GestureGenerator
-from gesture.process import build_alternation_filter
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
+from gesture.process import build_alternation_filter
 
 JOINTS = TORSO_AND_LEG_JOINTS
 
@@ -31,8 +31,10 @@ def test_the_alternation_goes_and_slow_motion_stays():
     poses, trans = _motion(200, 0)
     slow, slow_trans = _motion(200, 0, alternation=0.0)
     out, out_trans = AlternationFilter(JOINTS).step(poses, trans)
-    speeds = {name: angular_speeds(p, MOTION_FPS)[1:, list(JOINTS)] for name, p in
-              (("in", poses), ("out", out), ("slow", slow))}
+    speeds = {
+        name: angular_speeds(p, MOTION_FPS)[1:, list(JOINTS)]
+        for name, p in (("in", poses), ("out", out), ("slow", slow))
+    }
     assert np.median(speeds["in"]) > 2 * np.median(speeds["slow"])
     assert abs(np.median(speeds["out"]) / np.median(speeds["slow"]) - 1) < 0.05
     np.testing.assert_allclose(out_trans[1:], (slow_trans[1:] + slow_trans[:-1]) / 2, atol=1e-6)  # half a frame late
@@ -49,7 +51,7 @@ def test_two_frame_steps_equal_one_call_and_appending_never_changes_the_past():
     layer = AlternationFilter(JOINTS)
     whole = layer.step(poses, trans)
     layer.reset()
-    steps = [layer.step(poses[i:i + 2], trans[i:i + 2]) for i in range(0, 60, 2)]
+    steps = [layer.step(poses[i : i + 2], trans[i : i + 2]) for i in range(0, 60, 2)]
     np.testing.assert_allclose(np.concatenate([p for p, _ in steps]), whole[0], atol=1e-6)
     np.testing.assert_allclose(np.concatenate([t for _, t in steps]), whole[1], atol=1e-6)
     short = AlternationFilter(JOINTS).step(poses[:21], trans[:21])
@@ -63,8 +65,9 @@ def test_generator_applies_it_to_the_decoded_motion():
     outputs = [(plain.step(text, audio), filtered.step(text, audio)) for text, audio in conditions]
     for a, b in outputs:
         np.testing.assert_array_equal(a.tokens, b.tokens)
-    expected = AlternationFilter(JOINTS).step(np.concatenate([a.poses for a, _ in outputs]),
-                                              np.concatenate([a.trans for a, _ in outputs]))
+    expected = AlternationFilter(JOINTS).step(
+        np.concatenate([a.poses for a, _ in outputs]), np.concatenate([a.trans for a, _ in outputs])
+    )
     np.testing.assert_allclose(np.concatenate([b.poses for _, b in outputs]), expected[0], atol=1e-5)
     np.testing.assert_allclose(np.concatenate([b.trans for _, b in outputs]), expected[1], atol=1e-5)
 

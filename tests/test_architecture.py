@@ -31,15 +31,19 @@ def _tree(root: Path, files: dict[str, str]) -> Path:
 
 
 def test_an_added_upward_import_fails(tmp_path):
-    root = _tree(tmp_path, {
-        "core/__init__.py": "",
-        "core/timing.py": "STEP_MS = 80\n",
-        "gesture/__init__.py": "",
-        "gesture/body/__init__.py": "",
-        "gesture/body/skeleton.py": "from core.timing import STEP_MS\n",
-        "agent/__init__.py": "",
-        "agent/stage.py": "from gesture.body import skeleton\n",
-    })
+    root = _tree(
+        tmp_path,
+        {
+            "ecas/__init__.py": "",
+            "ecas/core/__init__.py": "",
+            "ecas/core/timing.py": "STEP_MS = 80\n",
+            "gesture/__init__.py": "",
+            "gesture/body/__init__.py": "",
+            "gesture/body/skeleton.py": "from ecas.core.timing import STEP_MS\n",
+            "agent/__init__.py": "",
+            "agent/stage.py": "from gesture.body import skeleton\n",
+        },
+    )
     assert layer_violations(import_graph(root)) == []
     (root / "gesture/body/skeleton.py").write_text("def f():\n    from agent.stage import Runner\n")
     (violation,) = layer_violations(import_graph(root))
@@ -49,19 +53,22 @@ def test_an_added_upward_import_fails(tmp_path):
 
 def test_a_sideways_import_between_siblings_fails():
     graph = {"render.avatar": {"dialogue.tts"}, "dialogue.tts": set()}
-    layers = (("core",), ("dialogue", "render"))
+    layers = (("ecas.core",), ("dialogue", "render"))
     (violation,) = layer_violations(graph, layers)
     assert "same layer" in violation.why
 
 
 def test_a_cycle_is_found():
-    graph = {"gesture.eval.suite": {"gesture.eval.evaluate"}, "gesture.eval.evaluate": {"gesture.eval.suite"},
-             "gesture.eval.metrics": set()}
+    graph = {
+        "gesture.eval.suite": {"gesture.eval.evaluate"},
+        "gesture.eval.evaluate": {"gesture.eval.suite"},
+        "gesture.eval.metrics": set(),
+    }
     assert cycles(graph) == [["gesture.eval.evaluate", "gesture.eval.suite"]]
 
 
 def test_the_core_imports_no_stage():
-    assert LAYERS[0] == ("core",)
+    assert LAYERS[0] == ("ecas.core",)
     stages = {"agent", "dialogue", "gesture", "render"}
     graph = import_graph(REPO)
-    assert not {t.split(".")[0] for m, ts in graph.items() if m.startswith("core.") for t in ts} & stages
+    assert not {t.split(".")[0] for m, ts in graph.items() if m.startswith("ecas.core.") for t in ts} & stages

@@ -16,7 +16,7 @@ def test_streaming_recognition_gives_partials_then_timed_words():
     asr.begin(10.0, speech[:1280])
     partials, final = [], None
     for i in range(1280, len(speech), 1280):
-        asr.feed(speech[i:i + 1280])
+        asr.feed(speech[i : i + 1280])
         assert asr.advance() is None
         partials.append(asr.partial)
     asr.finish()

@@ -6,21 +6,25 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from core.audio_file import AudioFileError, load_audio
 from agent.io.sources import NoAudioDevice, ReplaySource, check_input_device, split_steps
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from ecas.core.audio_file import AudioFileError, load_audio
+from ecas.core.paths import data_root
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "data"
+SHARED = data_root()
 
 
-@pytest.mark.parametrize("fmt, subtype, rate, channels", [
-    ("WAV", "PCM_16", 16000, 1),
-    ("WAV", "PCM_32", 44100, 2),
-    ("WAV", "FLOAT", 24000, 1),
-    ("FLAC", "PCM_16", 48000, 2),
-    ("OGG", "VORBIS", 22050, 1),
-])
+@pytest.mark.parametrize(
+    "fmt, subtype, rate, channels",
+    [
+        ("WAV", "PCM_16", 16000, 1),
+        ("WAV", "PCM_32", 44100, 2),
+        ("WAV", "FLOAT", 24000, 1),
+        ("FLAC", "PCM_16", 48000, 2),
+        ("OGG", "VORBIS", 22050, 1),
+    ],
+)
 def test_any_libsndfile_format_becomes_24k_mono(tmp_path, fmt, subtype, rate, channels):
     t = np.arange(rate) / rate  # 1 s
     tone = 0.5 * np.sin(2 * np.pi * 440 * t)
@@ -66,8 +70,13 @@ def test_bad_files_give_one_clear_error(tmp_path, case):
 @pytest.mark.parametrize("case", ["missing", "corrupt", "unsupported"])
 def test_launch_exits_2_with_one_line_for_a_bad_recording(tmp_path, case):
     path, message = _bad_files(tmp_path)[case]
-    proc = subprocess.run([sys.executable, "launch.py", "--replay", str(path), "--headless"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "launch.py", "--replay", str(path), "--headless"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0]
@@ -80,8 +89,7 @@ def test_no_audio_device_suggests_replay():
         pass
     else:
         pytest.skip("this machine has a working microphone")
-    proc = subprocess.run([sys.executable, "launch.py", "--mic"], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run([sys.executable, "launch.py", "--mic"], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "use --replay FILE" in proc.stderr and proc.stderr.count("\n") == 1
 
@@ -109,10 +117,10 @@ class FakeSoundDevice:
     def __init__(self):
         self.streams = []
 
-    def InputStream(self, **kw):  # noqa: N802 (sounddevice's name)
+    def InputStream(self, **kw):
         return self._stream(kw)
 
-    def OutputStream(self, **kw):  # noqa: N802
+    def OutputStream(self, **kw):
         return self._stream(kw)
 
     def _stream(self, kw):
@@ -143,8 +151,8 @@ def test_microphone_delivers_80ms_blocks_stamped_at_their_last_sample(monkeypatc
 
 
 def test_speaker_plays_steps_in_order_and_drops_the_oldest_when_far_behind(monkeypatch):
-    from agent.io import speaker as speaker_module
     from agent.io import sources
+    from agent.io import speaker as speaker_module
 
     fake = FakeSoundDevice()
     monkeypatch.setattr(sources, "_sounddevice", lambda: fake)
@@ -163,22 +171,25 @@ def test_speaker_plays_steps_in_order_and_drops_the_oldest_when_far_behind(monke
 
 def test_a_truncated_wav_is_read_with_a_warning(tmp_path, caplog):
     full = tmp_path / "full.wav"
-    sf.write(full, (0.3 * np.sin(np.arange(32000) / 16000 * 2 * np.pi * 220)).astype(np.float32), 16000,
-             subtype="PCM_16")  # 2 s
+    sf.write(
+        full, (0.3 * np.sin(np.arange(32000) / 16000 * 2 * np.pi * 220)).astype(np.float32), 16000, subtype="PCM_16"
+    )  # 2 s
     cut = tmp_path / "cut.wav"
-    cut.write_bytes(full.read_bytes()[:44 + 16000 * 2 // 2])  # the header and 0.5 s of samples
-    with caplog.at_level("WARNING", logger="core.audio_file"):
+    cut.write_bytes(full.read_bytes()[: 44 + 16000 * 2 // 2])  # the header and 0.5 s of samples
+    with caplog.at_level("WARNING", logger="ecas.core.audio_file"):
         pcm = load_audio(cut, SAMPLE_RATE_HZ)
         load_audio(full, SAMPLE_RATE_HZ)
     assert abs(len(pcm) - SAMPLE_RATE_HZ // 2) <= 2
     assert [r.getMessage() for r in caplog.records] == [
-        f"{cut}: truncated WAV: its header declares 2.00 s of audio, the file holds 0.50 s"]
+        f"{cut}: truncated WAV: its header declares 2.00 s of audio, the file holds 0.50 s"
+    ]
 
 
 def test_samples_beyond_full_scale_are_read_with_a_warning(tmp_path, caplog):
     loud = tmp_path / "loud.wav"
     sf.write(loud, np.array([0.5, 1.5, -2.0, 0.0] * 4000, np.float32), 16000, subtype="FLOAT")
-    with caplog.at_level("WARNING", logger="core.audio_file"):
+    with caplog.at_level("WARNING", logger="ecas.core.audio_file"):
         load_audio(loud, SAMPLE_RATE_HZ)
     assert [r.getMessage() for r in caplog.records] == [
-        f"{loud}: 8000 samples beyond ±1 full scale (peak 2.00); they clip when played or encoded"]
+        f"{loud}: 8000 samples beyond ±1 full scale (peak 2.00); they clip when played or encoded"
+    ]

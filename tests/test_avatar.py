@@ -83,19 +83,35 @@ def exported(avatar, tmp_path_factory):
 
 def test_lbs_equals_smplx_on_the_exported_avatar(avatar, exported):
     smplx = pytest.importorskip("smplx")
-    model = smplx.create(str(exported), model_type="smplx", gender="neutral", use_pca=False, flat_hand_mean=True,
-                         num_betas=10, num_expression_coeffs=100, use_face_contour=False)
+    model = smplx.create(
+        str(exported),
+        model_type="smplx",
+        gender="neutral",
+        use_pca=False,
+        flat_hand_mean=True,
+        num_betas=10,
+        num_expression_coeffs=100,
+        use_face_contour=False,
+    )
     rng = np.random.default_rng(0)
     for _ in range(3):
         poses = rng.normal(0, 0.3, (55, 3))
         betas = rng.normal(0, 1, 10)
         expression = rng.normal(0, 1, 100)
         trans = rng.normal(0, 0.5, 3)
-        t = lambda a: torch.tensor(a, dtype=torch.float32)[None]  # noqa: E731
-        out = model(global_orient=t(poses[0]), body_pose=t(poses[1:22].reshape(-1)), jaw_pose=t(poses[22]),
-                    leye_pose=t(poses[23]), reye_pose=t(poses[24]), left_hand_pose=t(poses[25:40].reshape(-1)),
-                    right_hand_pose=t(poses[40:55].reshape(-1)), betas=t(betas), expression=t(expression),
-                    transl=t(trans))
+        t = lambda a: torch.tensor(a, dtype=torch.float32)[None]
+        out = model(
+            global_orient=t(poses[0]),
+            body_pose=t(poses[1:22].reshape(-1)),
+            jaw_pose=t(poses[22]),
+            leye_pose=t(poses[23]),
+            reye_pose=t(poses[24]),
+            left_hand_pose=t(poses[25:40].reshape(-1)),
+            right_hand_pose=t(poses[40:55].reshape(-1)),
+            betas=t(betas),
+            expression=t(expression),
+            transl=t(trans),
+        )
         ours, joints = Skinner(avatar, betas)(poses, trans, expression)
         np.testing.assert_allclose(ours, out.vertices[0].detach().numpy(), atol=1e-5)
         np.testing.assert_allclose(joints, out.joints[0, :55].detach().numpy(), atol=1e-5)

@@ -8,8 +8,8 @@ import pytest
 import soundfile as sf
 import torch
 
-from core.config import ConfigError
-from core.errors import DataError
+from ecas.core.config import ConfigError
+from ecas.core.errors import DataError
 from gesture.body.regions import LOWER_VELOCITY_SLICE
 from gesture.body.rotation import axis_angle_to_matrix, yaw_of_matrix
 from gesture.data.beat2 import find_takes, read_motion, read_split_csv, read_textgrid_words, read_whisper_words
@@ -23,7 +23,7 @@ from tests.data.beat2_clip import BEAT2_DIR, CLIP_ID, CLIP_NPZ, needs_clip
 
 torch.set_num_threads(1)
 
-LONG_TEXTGRID = '''File type = "ooTextFile"
+LONG_TEXTGRID = """File type = "ooTextFile"
 Object class = "TextGrid"
 
 xmin = 0
@@ -62,9 +62,9 @@ item []:
         points [1]:
             number = 1.5
             mark = "b"
-'''
+"""
 
-SHORT_TEXTGRID = '''File type = "ooTextFile"
+SHORT_TEXTGRID = """File type = "ooTextFile"
 Object class = "TextGrid"
 
 0
@@ -82,7 +82,7 @@ Object class = "TextGrid"
 1.5
 4.0
 ""
-'''
+"""
 
 
 def test_textgrid_long_and_short_formats(tmp_path):
@@ -109,8 +109,14 @@ def test_textgrid_errors(tmp_path):
 def _write_take(root, take_id, poses, trans, expr, fps, sr=16000, words=None, textgrid=None, motion_dir=None):
     motion_dir = root / (motion_dir or f"smplxflame_{fps}")
     motion_dir.mkdir(parents=True, exist_ok=True)
-    np.savez(motion_dir / f"{take_id}.npz", poses=poses.reshape(len(poses), 165), trans=trans, expressions=expr,
-             betas=np.zeros(300, np.float32), mocap_frame_rate=np.int32(fps))
+    np.savez(
+        motion_dir / f"{take_id}.npz",
+        poses=poses.reshape(len(poses), 165),
+        trans=trans,
+        expressions=expr,
+        betas=np.zeros(300, np.float32),
+        mocap_frame_rate=np.int32(fps),
+    )
     (root / "wave16k").mkdir(exist_ok=True)
     t = np.arange(int(len(poses) / fps * sr)) / sr
     sf.write(root / "wave16k" / f"{take_id}.wav", (0.3 * np.sin(2 * np.pi * 220 * t) * 32767).astype(np.int16), sr)
@@ -138,7 +144,9 @@ def beat2_tree(tmp_path):
     _write_take(root, "1_wayne_0_1_1", *_motion(90, 0), fps=30, words=[("hi", 0.2, 0.5), ("you", 1.9, 2.3)])
     _write_take(root, "2_scott_0_2_2", *_motion(100, 1), fps=25, textgrid=SHORT_TEXTGRID, motion_dir="smplxflame_30")
     _write_take(root, "2_scott_0_3_3", *_motion(60, 2), fps=30)
-    (root / "train_test_split.csv").write_text("id,type\n1_wayne_0_1_1,train\n2_scott_0_2_2,test\n2_scott_0_3_3,additional\n")
+    (root / "train_test_split.csv").write_text(
+        "id,type\n1_wayne_0_1_1,train\n2_scott_0_2_2,test\n2_scott_0_3_3,additional\n"
+    )
     return root
 
 
@@ -157,7 +165,9 @@ def test_chunks_are_canonical_and_aligned(beat2_tree):
     take = next(t for t in find_takes(beat2_tree) if t.take_id == "1_wayne_0_1_1")
     chunks = chunk_take(take, cfg)
     assert chunks.num_chunks == 3  # 90 frames at 30 fps = 2.97 s -> 75 frames at 25 fps -> 3 x 20
-    assert chunks.upper.shape == (3, 20, 258) and chunks.lower.shape == (3, 20, 61) and chunks.face.shape == (3, 20, 106)
+    assert (
+        chunks.upper.shape == (3, 20, 258) and chunks.lower.shape == (3, 20, 61) and chunks.face.shape == (3, 20, 106)
+    )
     assert chunks.audio.shape == (3, 20 * 16000 // 25)
     np.testing.assert_allclose(chunks.start_s, [0.0, 0.8, 1.6])
     np.testing.assert_allclose(chunks.trans[:, 0], 0, atol=1e-7)
@@ -211,8 +221,14 @@ def test_malformed_files_name_the_file(tmp_path):
     np.savez(bad, poses=np.zeros((5, 160)), trans=np.zeros((5, 3)), expressions=np.zeros((5, 100)), mocap_frame_rate=30)
     with pytest.raises(DataError, match=r"'poses' must be \(T, 165\)"):
         read_motion(bad)
-    np.savez(bad, poses=np.zeros((5, 165)), gesture_poses=np.zeros((4, 165)), trans=np.zeros((5, 3)),
-             expressions=np.zeros((5, 100)), mocap_frame_rate=30)
+    np.savez(
+        bad,
+        poses=np.zeros((5, 165)),
+        gesture_poses=np.zeros((4, 165)),
+        trans=np.zeros((5, 3)),
+        expressions=np.zeros((5, 100)),
+        mocap_frame_rate=30,
+    )
     assert read_motion(bad).poses.shape == (5, 55, 3)
     with pytest.raises(DataError, match=r"'trans' must be \(4, 3\) to match 'gesture_poses'"):
         read_motion(bad, gesture_layer=True)

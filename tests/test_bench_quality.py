@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.quality import main as quality_main, pooled, seed_summary, select_takes
-from core.errors import DataError
+from bench.quality import main as quality_main
+from bench.quality import pooled, seed_summary, select_takes
+from ecas.core.errors import DataError
 from gesture.eval.realism import GOAL_GROUPS, GROUP_GOAL_RANGE
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
 
@@ -19,10 +20,17 @@ def test_the_summary_of_the_readmes_seed_names_what_misses():
     groups = REPORT["generated"]["ratios"]["groups"]
     listed = {name: groups[name.split(".")[0]][name.split(".")[1]] for name in summary["ratios_outside"]}
     assert all(not GROUP_GOAL_RANGE[0] <= value <= GROUP_GOAL_RANGE[1] for value in listed.values())
-    assert all(GROUP_GOAL_RANGE[0] <= value <= GROUP_GOAL_RANGE[1] for g in GOAL_GROUPS for k, value in groups[g].items()
-               if f"{g}.{k}" not in listed)
-    assert summary["all_met"] == (not listed and REPORT["generated"]["goals"]["l1div_within_25pct"]
-                                  and REPORT["generated"]["goals"]["beat_align_within_0.15"])
+    assert all(
+        GROUP_GOAL_RANGE[0] <= value <= GROUP_GOAL_RANGE[1]
+        for g in GOAL_GROUPS
+        for k, value in groups[g].items()
+        if f"{g}.{k}" not in listed
+    )
+    assert summary["all_met"] == (
+        not listed
+        and REPORT["generated"]["goals"]["l1div_within_25pct"]
+        and REPORT["generated"]["goals"]["beat_align_within_0.15"]
+    )
     assert summary["l1div_ratio"] == round(REPORT["generated"]["ratios"]["l1div"], 3)
     assert set(summary["quick_share_ratio"]) == set(REPORT["generated"]["ratios"]["spectra"])
     assert summary["hands_quick_share_ratio"] == round(REPORT["generated"]["ratios"]["hands"]["quick_share"], 3)
@@ -51,8 +59,11 @@ def _beat2_layout(root: Path, takes: dict[str, str], silent: tuple[str, ...] = (
 
 
 def test_the_held_out_takes_of_a_speaker_are_chosen_and_missing_ones_named(tmp_path):
-    root = _beat2_layout(tmp_path, {"2_scott_0_1_1": "train", "2_scott_0_2_2": "test", "2_scott_0_3_3": "test",
-                                    "1_wayne_0_1_1": "test"}, silent=("2_scott_0_3_3",))
+    root = _beat2_layout(
+        tmp_path,
+        {"2_scott_0_1_1": "train", "2_scott_0_2_2": "test", "2_scott_0_3_3": "test", "1_wayne_0_1_1": "test"},
+        silent=("2_scott_0_3_3",),
+    )
     assert [t.take_id for t in select_takes(root, "scott", "test")] == ["2_scott_0_2_2"]
     assert [t.take_id for t in select_takes(root, "wayne", "test")] == ["1_wayne_0_1_1"]
     assert [t.take_id for t in select_takes(root, "scott", "test", ["2_scott_0_1_1"])] == ["2_scott_0_1_1"]
@@ -88,6 +99,8 @@ def test_a_beat2_take_is_measured_against_its_own_motion(tmp_path, capsys):
     assert report["meta"]["clip"] == "2_scott_0_1_1"
     assert list(result["realism"]) == ["2_scott_0_1_1 seed 0"] and result["pooled"]["runs"] == 1
     groups = report["generated"]["ratios"]["groups"]
-    assert result["pooled"]["median_group_ratios"]["elbows.still_fraction"] == round(groups["elbows"]["still_fraction"], 3)
+    assert result["pooled"]["median_group_ratios"]["elbows.still_fraction"] == round(
+        groups["elbows"]["still_fraction"], 3
+    )
     assert 0.3 < groups["wrists"]["speed_median"] < 3  # an agent that moves, measured against real motion
     assert result["speaker_halves_outside"] == {"2_scott_0_1_1": report["real_halves"]["goal_ratios_outside"]}

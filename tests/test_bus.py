@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 import zmq
 
-from core.bus import Publisher, Subscriber, stage_address
 from agent.clock import ClockSync
 from agent.latency import LatencyRecorder, format_table
-from core.messages import AudioUser, Command, Control, Metrics
-from core.bus import BusConfig
+from ecas.core.bus import BusConfig, Publisher, Subscriber, stage_address
+from ecas.core.messages import AudioUser, Command, Control, Metrics
 
 
 @pytest.fixture
@@ -22,6 +21,7 @@ def pair(tmp_path):
         sub = Subscriber(ctx, [address], ["audio.user", "control"], live_queue=live_queue)
         _join(pub, sub)
         return pub, sub
+
     return make
 
 
@@ -66,9 +66,17 @@ def test_kept_topics_are_never_dropped(tmp_path):
         pub.send(block(step))
         pub.send(Metrics(step=step))
     _drain(sub, 12)
-    assert [(m.topic, m.step) for m in sub.queue] == [("metrics", 0), ("metrics", 1), ("metrics", 2),
-                                                      ("audio.user", 3), ("metrics", 3), ("audio.user", 4),
-                                                      ("metrics", 4), ("audio.user", 5), ("metrics", 5)]
+    assert [(m.topic, m.step) for m in sub.queue] == [
+        ("metrics", 0),
+        ("metrics", 1),
+        ("metrics", 2),
+        ("audio.user", 3),
+        ("metrics", 3),
+        ("audio.user", 4),
+        ("metrics", 4),
+        ("audio.user", 5),
+        ("metrics", 5),
+    ]
     assert sub.dropped == 3
 
 
@@ -110,8 +118,15 @@ def test_clock_sync_picks_the_shortest_round_trip():
 def test_latency_splits_per_stage_and_uses_the_second_frame():
     rec = LatencyRecorder(("io", "dialogue", "gesture", "render"))
     ms = 1_000_000
-    stamps = {"io": 1 * ms, "dialogue.in": 2 * ms, "dialogue": 12 * ms, "gesture.in": 13 * ms,
-              "gesture": 30 * ms, "render.in": 31 * ms, "render": 60 * ms}
+    stamps = {
+        "io": 1 * ms,
+        "dialogue.in": 2 * ms,
+        "dialogue": 12 * ms,
+        "gesture.in": 13 * ms,
+        "gesture": 30 * ms,
+        "render.in": 31 * ms,
+        "render": 60 * ms,
+    }
     rec.add(Metrics(step=0, t_origin_ns=0, stamps=stamps, values={"frame_index": 0.0}), {})
     rec.add(Metrics(step=0, t_origin_ns=0, stamps=stamps, values={"frame_index": 1.0}), {"render": 5 * ms})
     summary = rec.summary({"render": {"dropped": 2}}, {})

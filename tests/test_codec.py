@@ -1,12 +1,11 @@
 """Gesture codecs: reference sizes and key names, streaming == offline, causality, RVQ round trip."""
 
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
 from gesture.body.regions import REGION_DIMS
 from gesture.codec.build import build_codec, count_parameters
 from gesture.codec.config import CodecConfig, RegionSizes, codec_file_config_from_dict, load_codec_config
@@ -15,9 +14,17 @@ from gesture.codec.streaming import StreamingDecoder, StreamingEncoder
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
 KEYS_DIR = ROOT.parent / "shared" / "reference" / "state_dict_keys"
-TINY = CodecConfig(latent_dim=32, n_filters=16, dim_feedforward=64, context_steps=4, codebook_size=32,
-                   codebook_dim=8, kmeans_iters=5, dropout=0.0,
-                   regions={"upper": RegionSizes(3, 2, 2), "lower": RegionSizes(3, 2, 2), "face": RegionSizes(2, 1, 2)})
+TINY = CodecConfig(
+    latent_dim=32,
+    n_filters=16,
+    dim_feedforward=64,
+    context_steps=4,
+    codebook_size=32,
+    codebook_dim=8,
+    kmeans_iters=5,
+    dropout=0.0,
+    regions={"upper": RegionSizes(3, 2, 2), "lower": RegionSizes(3, 2, 2), "face": RegionSizes(2, 1, 2)},
+)
 
 
 def _trained_like(region: str, config: CodecConfig = TINY, seed: int = 0):
@@ -42,19 +49,35 @@ def test_reference_size_parameter_count_and_official_keys(region, expected):
 
 
 def test_reference_yaml_is_the_default_config():
-    assert load_codec_config(ROOT / "configs/codec/reference.yaml").codec == CodecConfig()
-    load_codec_config(ROOT / "configs/codec/small.yaml")
+    assert load_codec_config(ROOT / "ecas/configs/codec/reference.yaml").codec == CodecConfig()
+    load_codec_config(ROOT / "ecas/configs/codec/small.yaml")
 
 
 def test_bad_options_name_the_option():
     with pytest.raises(ConfigError, match="codec.codebook_size"):
         codec_file_config_from_dict({"codec": {"codebook_size": 0}})
     with pytest.raises(ConfigError, match="codec.regions.face: missing"):
-        codec_file_config_from_dict({"codec": {"regions": {"upper": {"n_q": 8, "num_layers": 8, "num_heads": 4},
-                                                           "lower": {"n_q": 8, "num_layers": 8, "num_heads": 4}}}})
+        codec_file_config_from_dict(
+            {
+                "codec": {
+                    "regions": {
+                        "upper": {"n_q": 8, "num_layers": 8, "num_heads": 4},
+                        "lower": {"n_q": 8, "num_layers": 8, "num_heads": 4},
+                    }
+                }
+            }
+        )
     with pytest.raises(ConfigError, match="codec.regions.face.n_q: must be > 0"):
-        codec_file_config_from_dict({"codec": {"regions": {r: {"n_q": 0 if r == "face" else 8, "num_layers": 1,
-                                                               "num_heads": 2} for r in ("upper", "lower", "face")}}})
+        codec_file_config_from_dict(
+            {
+                "codec": {
+                    "regions": {
+                        r: {"n_q": 0 if r == "face" else 8, "num_layers": 1, "num_heads": 2}
+                        for r in ("upper", "lower", "face")
+                    }
+                }
+            }
+        )
     with pytest.raises(ConfigError, match="train.window_frames"):
         codec_file_config_from_dict({"train": {"window_frames": 7}})
     with pytest.raises(ConfigError, match="region"):
@@ -79,9 +102,9 @@ def test_streaming_decoder_equals_offline_past_the_cache(region):
     codes = codec.encode(x)  # (4, K, 20): 20 steps, context 4 -> the ring wraps several times
     offline = codec.decode(codes)
     with StreamingDecoder(codec, batch_size=4) as decoder:
-        streamed = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(codes.shape[-1])], dim=1)
+        streamed = torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(codes.shape[-1])], dim=1)
         decoder.reset()
-        again = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(5)], dim=1)
+        again = torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(5)], dim=1)
     assert streamed.shape == (4, 40, REGION_DIMS[region])
     torch.testing.assert_close(streamed, offline, atol=1e-5, rtol=0)
     torch.testing.assert_close(again, offline[:, :10], atol=1e-5, rtol=0)
@@ -92,7 +115,7 @@ def test_streaming_encoder_equals_offline_and_both_halves_stream_together():
     offline_codes = codec.encode(x)
     offline_frames = codec.decode(offline_codes)
     with StreamingEncoder(codec, batch_size=4) as encoder, StreamingDecoder(codec, batch_size=4) as decoder:
-        steps = [encoder.step(x[:, 2 * s:2 * s + 2]) for s in range(20)]
+        steps = [encoder.step(x[:, 2 * s : 2 * s + 2]) for s in range(20)]
         frames = torch.cat([decoder.step(c) for c in steps], dim=1)
     assert torch.equal(torch.cat(steps, dim=-1), offline_codes)
     torch.testing.assert_close(frames, offline_frames, atol=1e-5, rtol=0)
@@ -100,12 +123,12 @@ def test_streaming_encoder_equals_offline_and_both_halves_stream_together():
 
 
 def test_streaming_at_small_size_with_the_25_step_context():
-    config = load_codec_config(ROOT / "configs/codec/small.yaml").codec
+    config = load_codec_config(ROOT / "ecas/configs/codec/small.yaml").codec
     codec, _ = _trained_like("lower", config)
     codes = torch.randint(0, config.codebook_size, (1, 8, 30))  # 30 steps > 25-step ring
     offline = codec.decode(codes)
     with StreamingDecoder(codec) as decoder:
-        streamed = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(30)], dim=1)
+        streamed = torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(30)], dim=1)
     torch.testing.assert_close(streamed, offline, atol=1e-5, rtol=0)
 
 
@@ -114,7 +137,7 @@ def test_half_precision_streaming_stays_close_to_float32():
     codes = codec.encode(x)
     offline = codec.decode(codes)
     with StreamingDecoder(codec.half(), batch_size=4) as decoder:
-        streamed = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(codes.shape[-1])], dim=1)
+        streamed = torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(codes.shape[-1])], dim=1)
     assert streamed.dtype == torch.float32
     torch.testing.assert_close(streamed, offline, atol=2e-2, rtol=0)
 

@@ -8,14 +8,32 @@ from bench.codec import main
 
 
 def test_bench_reports_every_variant(capsys):
-    main(["--json", "--steps", "3", "--warmup", "1", "--sizes", "small", "--dtypes", "float32", "float16",
-          "--prepared", "float32", "int8"])
+    main(
+        [
+            "--json",
+            "--steps",
+            "3",
+            "--warmup",
+            "1",
+            "--sizes",
+            "small",
+            "--dtypes",
+            "float32",
+            "float16",
+            "--prepared",
+            "float32",
+            "int8",
+        ]
+    )
     report = json.loads(capsys.readouterr().out)
     assert report["threads"] == 1 and report["goal_median_ms"] == 6.0
     assert report["machine"]["cpu"]["model"] and report["memory_read_GBps"] > 0
     assert [(r["size"], r["path"], r["dtype"]) for r in report["runs"]] == [
-        ("small", "cast", "float32"), ("small", "cast", "float16"),
-        ("small", "inference_codec", "float32"), ("small", "inference_codec", "int8")]
+        ("small", "cast", "float32"),
+        ("small", "cast", "float16"),
+        ("small", "inference_codec", "float32"),
+        ("small", "inference_codec", "int8"),
+    ]
     for run in report["runs"]:
         stats = run["decode_step_all_three"]
         assert 0 < stats["median_ms"] <= stats["p95_ms"] <= stats["p99_ms"]
@@ -31,8 +49,22 @@ def test_bench_reports_every_variant(capsys):
 
 @pytest.mark.slow
 def test_bench_quality_report(capsys):
-    main(["--json", "--steps", "2", "--warmup", "0", "--sizes", "small", "--dtypes", "float32",
-          "--prepared", "int8", "--quality"])
+    main(
+        [
+            "--json",
+            "--steps",
+            "2",
+            "--warmup",
+            "0",
+            "--sizes",
+            "small",
+            "--dtypes",
+            "float32",
+            "--prepared",
+            "int8",
+            "--quality",
+        ]
+    )
     quality = json.loads(capsys.readouterr().out)["quality"]
     errors = quality["random_codes_reference_max_abs_error"]
     assert set(errors["int8"]) == {"upper", "lower", "face"}

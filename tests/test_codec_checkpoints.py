@@ -1,4 +1,4 @@
-"""The shipped small codecs (checkpoints/codec_small): they load, stream, and reconstruct the held-out
+"""The shipped small codecs (ecas/checkpoints/codec_small): they load, stream, and reconstruct the held-out
 last 10 s of the real BEAT2 clip as well as when they were trained (values pinned from the model card)."""
 
 from pathlib import Path
@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from ecas.core.paths import CHECKPOINTS_DIR, data_root
 from gesture.body.skeleton import Skeleton
 from gesture.codec.checkpoint import load_codec
 from gesture.codec.data import load_motion_splits
@@ -14,8 +15,8 @@ from gesture.codec.streaming import StreamingDecoder
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
-CHECKPOINTS = ROOT / "checkpoints" / "codec_small"
-CLIP = ROOT.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+CHECKPOINTS = CHECKPOINTS_DIR / "codec_small"
+CLIP = data_root() / "beat2" / "2_scott_0_1_1.npz"
 # held-out errors measured after training (README.md of the checkpoints), with a margin for float noise
 HELDOUT_LIMITS = {"upper": ("mpjpe_mm", 75.0), "lower": ("mpjpe_mm", 20.0), "face": ("jaw_error_deg", 1.2)}
 
@@ -40,5 +41,5 @@ def test_shipped_codec_streams_like_offline(heldout):
     codec = load_codec(CHECKPOINTS / "upper")
     codes = codec.encode(heldout[0].features["upper"][None, :80])  # (1, 8, 40)
     with StreamingDecoder(codec) as decoder:
-        streamed = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(40)], dim=1)
+        streamed = torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(40)], dim=1)
     torch.testing.assert_close(streamed, codec.decode(codes), atol=1e-5, rtol=0)

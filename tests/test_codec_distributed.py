@@ -13,8 +13,15 @@ def _rank_main(rank: int, workdir: str) -> None:
     dist.init_process_group("gloo", init_method=f"file://{workdir}/init", rank=rank, world_size=2)
     try:
         torch.manual_seed(0)
-        rvq = ResidualVectorQuantizer(dim=6, codebook_dim=4, n_q=3, codebook_size=16, kmeans_iters=3,
-                                      dead_code_every_steps=2, quantizer_dropout=True).train()
+        rvq = ResidualVectorQuantizer(
+            dim=6,
+            codebook_dim=4,
+            n_q=3,
+            codebook_size=16,
+            kmeans_iters=3,
+            dead_code_every_steps=2,
+            quantizer_dropout=True,
+        ).train()
         data = torch.Generator().manual_seed(100 + rank)  # each rank sees different latents
         used = []
         for _ in range(7):

@@ -14,7 +14,7 @@ from tests.kernels import KERNELS, using
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = load_codec_config(ROOT / "configs/codec/small.yaml").codec
+SMALL = load_codec_config(ROOT / "ecas/configs/codec/small.yaml").codec
 STEPS = 30  # past the 25-step attention ring
 
 # Largest |streamed - float32 offline| relative to max |offline|, per weight form. float32 only reorders
@@ -40,7 +40,7 @@ def _codec(region: str, seed: int = 0):
 
 def _stream(codec, codes: torch.Tensor) -> torch.Tensor:
     with StreamingDecoder(codec, batch_size=codes.shape[0]) as decoder:
-        return torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(codes.shape[-1])], dim=1)
+        return torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(codes.shape[-1])], dim=1)
 
 
 @pytest.mark.parametrize("kernels", KERNELS)
@@ -69,13 +69,14 @@ def test_prepared_float32_is_float32_exact_and_resets():
     with StreamingDecoder(codec):
         prepared = inference_codec(codec, "float32")  # copied while the original streams: no stream open
     with StreamingDecoder(prepared) as decoder:
-        first = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(STEPS)], dim=1)
+        first = torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(STEPS)], dim=1)
         decoder.reset()
-        again = torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(STEPS)], dim=1)
+        again = torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(STEPS)], dim=1)
     torch.testing.assert_close(first, offline, atol=1e-5, rtol=0)
     assert torch.equal(first, again)
-    torch.testing.assert_close(_stream(prepared, codes[:, :3]), codec.decode(codes[:, :3]).detach(), atol=1e-5,
-                               rtol=0)  # fewer levels: a coarser decode, as the original
+    torch.testing.assert_close(
+        _stream(prepared, codes[:, :3]), codec.decode(codes[:, :3]).detach(), atol=1e-5, rtol=0
+    )  # fewer levels: a coarser decode, as the original
 
 
 def test_original_codec_is_untouched_and_the_encoder_half_still_works():
@@ -93,7 +94,7 @@ def test_original_codec_is_untouched_and_the_encoder_half_still_works():
 
 def _encode_stream(codec, frames: torch.Tensor) -> torch.Tensor:
     with StreamingEncoder(codec) as encoder:
-        return torch.cat([encoder.step(frames[:, 2 * s:2 * s + 2]) for s in range(frames.shape[1] // 2)], dim=-1)
+        return torch.cat([encoder.step(frames[:, 2 * s : 2 * s + 2]) for s in range(frames.shape[1] // 2)], dim=-1)
 
 
 def test_bad_dtype_names_the_option():

@@ -23,8 +23,9 @@ def test_kmeans_finds_separated_clusters():
 
 
 def _codebook(size=3, decay=0.9, every=1000):
-    return EuclideanCodebook(dim=2, codebook_size=size, decay=decay, kmeans_iters=20, dead_code_every_steps=every,
-                             dead_code_usage_ratio=0.1)
+    return EuclideanCodebook(
+        dim=2, codebook_size=size, decay=decay, kmeans_iters=20, dead_code_every_steps=every, dead_code_usage_ratio=0.1
+    )
 
 
 def test_codebook_initialises_once_then_learns_by_ema():
@@ -53,7 +54,7 @@ def test_dead_codes_are_replaced_with_batch_vectors():
         codebook(x)
     far = (codebook.embedding - torch.tensor([1000.0, 1000.0])).norm(dim=-1)
     assert far.min() > 100  # the unused code now sits on a data vector
-    assert (codebook.embedding[3].norm() < 12)
+    assert codebook.embedding[3].norm() < 12
 
 
 def _rvq(**kwargs):

@@ -8,7 +8,8 @@ import pytest
 import torch
 import yaml
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
+from ecas.core.paths import data_root
 from gesture.body.motion import integrate_velocity
 from gesture.body.regions import motion_to_features
 from gesture.body.rotation import axis_angle_to_matrix
@@ -19,20 +20,29 @@ from gesture.codec.losses import RegionLoss, integrate_root, laplacian, log_map,
 from gesture.codec.train import commitment_ramp, main
 
 torch.set_num_threads(1)
-CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+CLIP = data_root() / "beat2" / "2_scott_0_1_1.npz"
 TINY_YAML = {
-    "codec": {"latent_dim": 32, "n_filters": 16, "dim_feedforward": 64, "codebook_size": 32, "codebook_dim": 8,
-              "kmeans_iters": 3, "dropout": 0.0,
-              "regions": {"upper": {"n_q": 2, "num_layers": 1, "num_heads": 2},
-                          "lower": {"n_q": 2, "num_layers": 1, "num_heads": 2},
-                          "face": {"n_q": 2, "num_layers": 1, "num_heads": 2}}},
+    "codec": {
+        "latent_dim": 32,
+        "n_filters": 16,
+        "dim_feedforward": 64,
+        "codebook_size": 32,
+        "codebook_dim": 8,
+        "kmeans_iters": 3,
+        "dropout": 0.0,
+        "regions": {
+            "upper": {"n_q": 2, "num_layers": 1, "num_heads": 2},
+            "lower": {"n_q": 2, "num_layers": 1, "num_heads": 2},
+            "face": {"n_q": 2, "num_layers": 1, "num_heads": 2},
+        },
+    },
     "train": {"batch_size": 2, "window_frames": 16, "lr": 1e-3, "steps": 4, "checkpoint_every": 2},
 }
 
 
 def test_laplacian_velocity_and_integration_known_values():
     t = torch.arange(10.0)
-    x = (t ** 2)[None, :, None]  # (1, 10, 1)
+    x = (t**2)[None, :, None]  # (1, 10, 1)
     torch.testing.assert_close(laplacian(x), torch.full((1, 6, 1), 2.0))
     torch.testing.assert_close(velocity(x)[0, :3, 0], torch.tensor([1.0, 3.0, 5.0]))
     vel = np.random.default_rng(0).normal(size=(7, 3))
@@ -51,8 +61,12 @@ def test_log_map_matches_axis_angle_and_has_finite_gradients():
 @pytest.mark.parametrize("region", ["upper", "lower", "face"])
 def test_region_loss_vanishes_on_the_target_and_grows_with_error(region):
     rng = np.random.default_rng(0)
-    features = [motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), 0.05 * rng.normal(size=(12, 3)).cumsum(0),
-                                   rng.normal(size=(12, 100)))[region] for _ in range(2)]
+    features = [
+        motion_to_features(
+            0.3 * rng.normal(size=(12, 55, 3)), 0.05 * rng.normal(size=(12, 3)).cumsum(0), rng.normal(size=(12, 100))
+        )[region]
+        for _ in range(2)
+    ]
     target = torch.from_numpy(np.stack(features))  # (2, 12, nfeats)
     loss = RegionLoss(region)
     same = loss(target, target)
@@ -82,8 +96,9 @@ def test_log_speed_error_sees_wobble_during_a_hold_that_velocity_mse_misses():
 @pytest.mark.parametrize("region", ["upper", "lower"])
 def test_log_speed_term_only_when_weighted(region):
     rng = np.random.default_rng(1)
-    target = torch.from_numpy(motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), np.zeros((12, 3)),
-                                                 rng.normal(size=(12, 100)))[region])[None]  # (1, 12, nfeats)
+    target = torch.from_numpy(
+        motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), np.zeros((12, 3)), rng.normal(size=(12, 100)))[region]
+    )[None]  # (1, 12, nfeats)
     pred = target + 0.01 * torch.randn_like(target)
     assert "log_speed" not in RegionLoss(region)(pred, target)
     weighted = RegionLoss(region, log_speed_weight=0.5)(pred, target)
@@ -103,8 +118,9 @@ def test_expression_mse_punishes_a_missed_blink_more_than_l1_does():
 
 def test_joint_position_weight_scales_only_the_position_term():
     rng = np.random.default_rng(1)
-    target = torch.from_numpy(motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), np.zeros((12, 3)),
-                                                 rng.normal(size=(12, 100)))["upper"])[None]  # (1, 12, 258)
+    target = torch.from_numpy(
+        motion_to_features(0.3 * rng.normal(size=(12, 55, 3)), np.zeros((12, 3)), rng.normal(size=(12, 100)))["upper"]
+    )[None]  # (1, 12, 258)
     pred = target + 0.01 * torch.randn_like(target)
     reference, heavy = RegionLoss("upper")(pred, target), RegionLoss("upper", joint_position_weight=100.0)(pred, target)
     assert float(heavy["joints"]) == pytest.approx(10 * float(reference["joints"]), rel=1e-5)
@@ -133,8 +149,24 @@ def test_cli_trains_checkpoints_and_resumes(tmp_path, capsys):
         assert (out / name).is_file(), name
     codec = load_codec(out)
     assert not codec.training and codec.nfeats == 106
-    assert main(["--config", str(config), "--region", "face", "--data", str(CLIP), "--out", str(out),
-                 "--resume", "--steps", "6"]) == 0
+    assert (
+        main(
+            [
+                "--config",
+                str(config),
+                "--region",
+                "face",
+                "--data",
+                str(CLIP),
+                "--out",
+                str(out),
+                "--resume",
+                "--steps",
+                "6",
+            ]
+        )
+        == 0
+    )
     state = json.loads((out / "trainer_state.json").read_text())
     assert state["step"] == 6 and len(state["history"]["loss"]) == 6
 
@@ -142,7 +174,7 @@ def test_cli_trains_checkpoints_and_resumes(tmp_path, capsys):
 @pytest.mark.slow
 @pytest.mark.skipif(not CLIP.is_file(), reason="needs ../shared/data/beat2")
 def test_short_training_run_lowers_mpjpe_on_the_clip_and_held_out(tmp_path, capsys):
-    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs/codec/small.yaml").read_text())
+    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "ecas/configs/codec/small.yaml").read_text())
     config["train"].update(steps=150, checkpoint_every=150)
     path = tmp_path / "small.yaml"
     path.write_text(yaml.safe_dump(config))
@@ -154,7 +186,6 @@ def test_short_training_run_lowers_mpjpe_on_the_clip_and_held_out(tmp_path, caps
 
 @pytest.mark.skipif(not CLIP.is_file(), reason="needs ../shared/data/beat2")
 def test_training_data_from_a_chunk_cache(tmp_path):
-    from gesture.codec.data import load_motion_splits
     from gesture.data.beat2 import find_takes
     from gesture.data.cache import build_cache
     from gesture.data.config import DataConfig
@@ -166,7 +197,6 @@ def test_training_data_from_a_chunk_cache(tmp_path):
 
 
 def test_missing_data_is_a_clear_error(tmp_path):
-    from gesture.codec.data import load_motion_splits
 
     with pytest.raises(FileNotFoundError, match="neither a BEAT2 motion npz nor a chunk cache"):
         load_motion_splits(tmp_path / "nothing.npz", 10.0)

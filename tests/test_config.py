@@ -1,10 +1,10 @@
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Literal
 
 import pytest
 
-from core.config import ConfigError, build_dataclass
 from agent.sections import AppConfig, load_app_config
+from ecas.core.config import ConfigError, build_dataclass
 
 
 @dataclass(frozen=True)
@@ -18,7 +18,7 @@ class Outer:
     name: str = "x"
     size: int = 3
     sizes: tuple[int, ...] = (1, 2)
-    path: Optional[str] = None
+    path: str | None = None
     inner: Inner = field(default_factory=Inner)
 
 
@@ -27,43 +27,49 @@ def test_builds_nested_frozen_dataclasses():
     assert out == Outer(size=5, sizes=(3, 4), inner=Inner(rate=2.0, mode="b"))
 
 
-@pytest.mark.parametrize("tree, message", [
-    ({"sise": 5}, "outer.sise: unknown option"),
-    ({"inner": {"rat": 1}}, "outer.inner.rat: unknown option"),
-    ({"size": "big"}, "outer.size: expected int, got 'big'"),
-    ({"size": True}, "outer.size: expected int, got True"),
-    ({"inner": {"mode": "c"}}, "outer.inner.mode: must be one of 'a', 'b', got 'c'"),
-    ({"sizes": 3}, "outer.sizes: expected a list"),
-    ({"inner": 4}, "outer.inner: expected a mapping"),
-])
+@pytest.mark.parametrize(
+    "tree, message",
+    [
+        ({"sise": 5}, "outer.sise: unknown option"),
+        ({"inner": {"rat": 1}}, "outer.inner.rat: unknown option"),
+        ({"size": "big"}, "outer.size: expected int, got 'big'"),
+        ({"size": True}, "outer.size: expected int, got True"),
+        ({"inner": {"mode": "c"}}, "outer.inner.mode: must be one of 'a', 'b', got 'c'"),
+        ({"sizes": 3}, "outer.sizes: expected a list"),
+        ({"inner": 4}, "outer.inner: expected a mapping"),
+    ],
+)
 def test_errors_name_the_bad_key(tree, message):
     with pytest.raises(ConfigError, match=message):
         build_dataclass(Outer, tree, "outer")
 
 
 def test_default_config_loads_and_overrides_apply(tmp_path):
-    app = load_app_config("configs/default.yaml", ["bus.transport=tcp", "run.seed=7", "io.speaker=true"])
+    app = load_app_config("ecas/configs/default.yaml", ["bus.transport=tcp", "run.seed=7", "io.speaker=true"])
     assert isinstance(app, AppConfig)
     assert (app.bus.transport, app.run.seed, app.io.speaker) == ("tcp", 7, True)
 
 
-@pytest.mark.parametrize("override, message", [
-    ("bus.credit_window_steps=0", "bus.credit_window_steps: must be >= 1"),
-    ("bus.nope=1", "bus.nope: unknown option"),
-    ("run.stages=[dialogue, io]", "run.stages: must start with io"),
-    ("run.components.mixer=a:b", "run.components.mixer: unknown stage"),
-    ("bus.endpoints.render=localhost:5", "bus.endpoints.render: expected tcp://host:port"),
-    ("nonsense", "expected section.key=value"),
-    ("run.seed.x=1", "run.seed: is not a section"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("bus.credit_window_steps=0", "bus.credit_window_steps: must be >= 1"),
+        ("bus.nope=1", "bus.nope: unknown option"),
+        ("run.stages=[dialogue, io]", "run.stages: must start with io"),
+        ("run.components.mixer=a:b", "run.components.mixer: unknown stage"),
+        ("bus.endpoints.render=localhost:5", "bus.endpoints.render: expected tcp://host:port"),
+        ("nonsense", "expected section.key=value"),
+        ("run.seed.x=1", "run.seed: is not a section"),
+    ],
+)
 def test_bad_overrides_name_the_key(override, message):
     with pytest.raises(ConfigError, match=message):
-        load_app_config("configs/default.yaml", [override])
+        load_app_config("ecas/configs/default.yaml", [override])
 
 
 def test_missing_config_file():
     with pytest.raises(ConfigError, match="config file not found"):
-        load_app_config("configs/nope.yaml")
+        load_app_config("ecas/configs/nope.yaml")
 
 
 def test_every_yaml_reader_names_a_missing_file(tmp_path):

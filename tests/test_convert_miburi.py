@@ -9,9 +9,9 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 
-from core.body import REGIONS
-from core.config import ConfigError
-from core.spec import ConditionSpec
+from ecas.core.body import REGIONS
+from ecas.core.config import ConfigError
+from ecas.core.spec import ConditionSpec
 from gesture.codec.checkpoint import load_codec
 from gesture.lm.checkpoint import load_lm
 from gesture.nn.attention import StreamingMultiheadAttention
@@ -23,10 +23,26 @@ from gesture.release.synthetic import ReferenceSizes, codec_layout, glm_layout, 
 
 torch.set_num_threads(1)
 KEYS_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "state_dict_keys"
-TINY = ReferenceSizes(latent=16, n_filters=8, codec_ffn=32, codec_layers=2, codec_heads=2,
-                      n_q={"upper": 3, "lower": 2, "face": 2}, card=16, code_dim=4, d=32, temporal_layers=2,
-                      temporal_heads=2, depth_layers=3, depth_heads=1, ffn_hidden=48, n_speakers=9, text_vocab=50,
-                      audio_card=17, embed_dim=24)
+TINY = ReferenceSizes(
+    latent=16,
+    n_filters=8,
+    codec_ffn=32,
+    codec_layers=2,
+    codec_heads=2,
+    n_q={"upper": 3, "lower": 2, "face": 2},
+    card=16,
+    code_dim=4,
+    d=32,
+    temporal_layers=2,
+    temporal_heads=2,
+    depth_layers=3,
+    depth_heads=1,
+    ffn_hidden=48,
+    n_speakers=9,
+    text_vocab=50,
+    audio_card=17,
+    embed_dim=24,
+)
 STEP = 1920
 
 
@@ -63,7 +79,13 @@ def test_sizes_come_from_shapes_and_config(release):
     lm = load_lm(out / "lm")
     s = lm.sizes
     assert (s.d_model, s.temporal_layers, s.temporal_heads, s.depth_layers, s.depth_heads, s.ffn_hidden) == (
-        32, 2, 2, 3, 1, 48)
+        32,
+        2,
+        2,
+        3,
+        1,
+        48,
+    )
     assert (s.n_upper, s.n_lower, s.n_face, s.card, s.code_dim, s.n_speakers) == (3, 2, 2, 16, 4, 9)
     assert s.va_head and not s.va_use_face_logits
     assert lm.spec == ConditionSpec(name="moshi", text_vocab=50, audio_card=17, embed_dim=24)
@@ -97,14 +119,15 @@ def test_folded_weights_equal_g_v_over_norm(release):
         g, v = source[f"{key}.weight_g"], source[f"{key}.weight_v"]
         assert g.shape == (2 * TINY.n_filters, 1, 1) and v.shape == (2 * TINY.n_filters, TINY.n_filters, 4)
         per_input = _independent_fold(g, v)
-        per_output = g * v / np.sqrt((v ** 2).sum(axis=(0, 2), keepdims=True))
+        per_output = g * v / np.sqrt((v**2).sum(axis=(0, 2), keepdims=True))
         assert not np.allclose(per_input, per_output, rtol=1e-3)
         x = torch.randn(1, v.shape[0], 3)
         module = codec.seanet_decoder.model[2].convtr.convtr
         with torch.no_grad():
             ours = module(x)
-        reference = F.conv_transpose1d(x, torch.from_numpy(per_input).float(), torch.from_numpy(source[f"{key}.bias"]),
-                                       stride=2)
+        reference = F.conv_transpose1d(
+            x, torch.from_numpy(per_input).float(), torch.from_numpy(source[f"{key}.bias"]), stride=2
+        )
         torch.testing.assert_close(ours, reference, rtol=1e-5, atol=1e-6)
 
 
@@ -121,13 +144,13 @@ def test_packed_qkv_split_heads_contiguous(release):
     x = torch.randn(1, steps, e, dtype=torch.float64)
     with torch.no_grad():
         ours = attention.double()(x, torch.arange(steps))[0]
-    wq, wk, wv = packed[:e], packed[e:2 * e], packed[2 * e:]
+    wq, wk, wv = packed[:e], packed[e : 2 * e], packed[2 * e :]
     dh = e // heads
     heads_out = []
     for h in range(heads):
         rows = slice(h * dh, (h + 1) * dh)
         q, k, v = x[0] @ wq[rows].T, x[0] @ wk[rows].T, x[0] @ wv[rows].T  # (T, Dh)
-        scores = (q @ k.T) / dh ** 0.5
+        scores = (q @ k.T) / dh**0.5
         scores = scores.masked_fill(torch.ones(steps, steps).triu(1).bool(), float("-inf"))
         heads_out.append(scores.softmax(-1) @ v)
     expected = torch.cat(heads_out, dim=-1) @ out_proj.T
@@ -209,12 +232,18 @@ def _reshape_codec_key(t):
     t["transformer_decoder.transformer.layers.0.linear2.weight"] = torch.zeros(16, 31)
 
 
-@pytest.mark.parametrize("target, change, expected", [
-    ("glm", _drop_glm_key, "missing key 'depformer_in.2.weight'"),
-    ("lower", _add_codec_key, "unexpected key 'quantizer.vq.layers.0._codebook.extra'"),
-    ("face", _reshape_codec_key, "key 'transformer_decoder.transformer.layers.0.linear2.weight' has shape (16, 31), "
-                                 "expected (16, 32)"),
-])
+@pytest.mark.parametrize(
+    "target, change, expected",
+    [
+        ("glm", _drop_glm_key, "missing key 'depformer_in.2.weight'"),
+        ("lower", _add_codec_key, "unexpected key 'quantizer.vq.layers.0._codebook.extra'"),
+        (
+            "face",
+            _reshape_codec_key,
+            "key 'transformer_decoder.transformer.layers.0.linear2.weight' has shape (16, 31), expected (16, 32)",
+        ),
+    ],
+)
 def test_bad_checkpoints_stop_with_one_error_naming_file_and_key(tmp_path, capsys, target, change, expected):
     files = write_experiment(tmp_path / "exp", TINY)
     path = files.glm if target == "glm" else files.codecs[target]
@@ -244,16 +273,20 @@ def test_converted_release_runs_streaming_steps_with_idle_gate_and_character(rel
     assert speaker == 4
     generator = build_generator(release_gesture_config(out, speaker, dtype="float32"), seed=3)
     loud = 0.3 * np.sin(np.arange(STEP) / 7.0).astype(np.float32)
-    steps = [generator.step(t, np.arange(8) % TINY.audio_card, loud if t < 4 else np.zeros(STEP, np.float32))
-             for t in range(10)]
+    steps = [
+        generator.step(t, np.arange(8) % TINY.audio_card, loud if t < 4 else np.zeros(STEP, np.float32))
+        for t in range(10)
+    ]
     generator.close()
     assert [s.idle for s in steps] == [False] * 4 + [False, False] + [True] * 4  # 3-step window of agent audio
     for s in steps:
         assert s.tokens.shape == (7,) and s.tokens.min() >= 0 and s.tokens.max() < TINY.card
         assert s.poses.shape == (2, 55, 3) and np.isfinite(s.poses).all() and np.isfinite(s.trans).all()
         assert np.isfinite(s.va_prob)
-    with np.load(files.root / "tokens_idle_slices" / "idle_upper_tokens_slices.npz") as src, \
-            np.load(out / "idle" / "idle_upper_tokens_slices.npz") as ours:
+    with (
+        np.load(files.root / "tokens_idle_slices" / "idle_upper_tokens_slices.npz") as src,
+        np.load(out / "idle" / "idle_upper_tokens_slices.npz") as ours,
+    ):
         np.testing.assert_array_equal(src["0"], ours["0"])
     bf16 = build_generator(release_gesture_config(out, speaker), seed=3)  # the runtime's default step dtype
     assert np.isfinite(bf16.step(1, np.zeros(8), loud).poses).all()

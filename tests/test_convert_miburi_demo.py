@@ -1,4 +1,4 @@
-"""configs/miburi-release.yaml: the moshi backend plus a converted release, run by launch.py end to end
+"""ecas/configs/miburi-release.yaml: the moshi backend plus a converted release, run by launch.py end to end
 (a tiny random Moshi in the released file formats, and a tiny release converted by gesture.release.convert)."""
 
 import dataclasses
@@ -11,19 +11,21 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from ecas.core.paths import CONFIGS_DIR
+
 pytest.importorskip("moshi")
 
-from agent.sections import load_app_config  # noqa: E402
-from core.component import RunContext  # noqa: E402
-from core.messages import AudioUser, GestureStep  # noqa: E402
-from dialogue.process import create_component as create_dialogue  # noqa: E402
-from gesture.process import create_component as create_gesture  # noqa: E402
-from gesture.release.convert import convert_release  # noqa: E402
-from gesture.release.synthetic import ReferenceSizes, write_experiment  # noqa: E402
-from tests.test_moshi_backend import TINY_CARD, TINY_LM, TINY_TEXT_CARD, tiny_moshi_files  # noqa: E402,F401
+from agent.sections import load_app_config
+from dialogue.process import create_component as create_dialogue
+from ecas.core.component import RunContext
+from ecas.core.messages import AudioUser, GestureStep
+from gesture.process import create_component as create_gesture
+from gesture.release.convert import convert_release
+from gesture.release.synthetic import ReferenceSizes, write_experiment
+from tests.test_moshi_backend import TINY_CARD, TINY_LM, TINY_TEXT_CARD, tiny_moshi_files  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = ROOT / "configs" / "miburi-release.yaml"
+CONFIG = CONFIGS_DIR / "miburi-release.yaml"
 
 
 def test_release_config_is_the_moshi_backend_with_the_converted_release():
@@ -35,8 +37,10 @@ def test_release_config_is_the_moshi_backend_with_the_converted_release():
     assert Path(app.dialogue.moshi.tokenizer).name == "tokenizer_spm_32k_3.model"
     g = app.gesture
     assert (g.lm_checkpoint, g.codec_checkpoints, g.idle.slices_dir) == (
-        Path("checkpoints/miburi-release/lm"), Path("checkpoints/miburi-release/codecs"),
-        Path("checkpoints/miburi-release/idle"))
+        Path("checkpoints/miburi-release/lm"),
+        Path("checkpoints/miburi-release/codecs"),
+        Path("checkpoints/miburi-release/idle"),
+    )
     assert g.idle.enabled and g.cfg_scale == 1.3 and g.speaker == 3
     text = CONFIG.read_text()
     assert "CC BY-NC 4.0" in text and "python -m gesture.convert_miburi" in text
@@ -45,9 +49,23 @@ def test_release_config_is_the_moshi_backend_with_the_converted_release():
 @pytest.fixture(scope="module")
 def tiny_release(tmp_path_factory):
     """A release whose conditioning vocabulary is the tiny Moshi's (text_card + 1, card + 1, dim)."""
-    sizes = ReferenceSizes(latent=16, n_filters=8, codec_ffn=32, codec_layers=2, codec_heads=2, card=16, code_dim=4,
-                           d=32, temporal_layers=1, depth_layers=1, ffn_hidden=48, n_speakers=9,
-                           text_vocab=TINY_TEXT_CARD + 1, audio_card=TINY_CARD + 1, embed_dim=TINY_LM["dim"])
+    sizes = ReferenceSizes(
+        latent=16,
+        n_filters=8,
+        codec_ffn=32,
+        codec_layers=2,
+        codec_heads=2,
+        card=16,
+        code_dim=4,
+        d=32,
+        temporal_layers=1,
+        depth_layers=1,
+        ffn_hidden=48,
+        n_speakers=9,
+        text_vocab=TINY_TEXT_CARD + 1,
+        audio_card=TINY_CARD + 1,
+        embed_dim=TINY_LM["dim"],
+    )
     root = tmp_path_factory.mktemp("release")
     write_experiment(root / "exp", sizes)
     convert_release(root / "exp", root / "out", check=False)
@@ -60,10 +78,13 @@ def _overrides(moshi_dir: Path, out: Path) -> list[str]:
         "dialogue.moshi.lm_weights": moshi_dir / "model.safetensors",
         "dialogue.moshi.mimi_weights": moshi_dir / "mimi.safetensors",
         "dialogue.moshi.tokenizer": moshi_dir / "spm.model",
-        "dialogue.moshi.lm_config": moshi_dir / "lm.json", "dialogue.moshi.mimi_config": moshi_dir / "mimi.json",
-        "dialogue.moshi.device": "cpu", "gesture.lm_checkpoint": out / "lm",
+        "dialogue.moshi.lm_config": moshi_dir / "lm.json",
+        "dialogue.moshi.mimi_config": moshi_dir / "mimi.json",
+        "dialogue.moshi.device": "cpu",
+        "gesture.lm_checkpoint": out / "lm",
         "gesture.codec_checkpoints": out / "codecs",
-        "gesture.idle.slices_dir": out / "idle", "gesture.warmup_steps": 1,
+        "gesture.idle.slices_dir": out / "idle",
+        "gesture.warmup_steps": 1,
     }
     return [f"{key}={value}" for key, value in values.items()]
 
@@ -93,10 +114,23 @@ def test_launch_runs_the_release_config_with_moshi(tiny_release, tiny_moshi_file
     t = np.arange(int(1.0 * 24000)) / 24000
     sf.write(wav, (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), 24000)
     report = tmp_path / "run"
-    cmd = [sys.executable, str(ROOT / "launch.py"), "--config", str(CONFIG), "--replay", str(wav), "--headless",
-           "--fast", "--report", str(report)]
-    for override in [*_overrides(tiny_moshi_files, tiny_release), "io.tail_silence_s=0.4",
-                     "run.components.render=tests.components:recorder"]:
+    cmd = [
+        sys.executable,
+        str(ROOT / "launch.py"),
+        "--config",
+        str(CONFIG),
+        "--replay",
+        str(wav),
+        "--headless",
+        "--fast",
+        "--report",
+        str(report),
+    ]
+    for override in [
+        *_overrides(tiny_moshi_files, tiny_release),
+        "io.tail_silence_s=0.4",
+        "run.components.render=tests.components:recorder",
+    ]:
         cmd += ["--set", override]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr

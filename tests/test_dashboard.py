@@ -16,25 +16,37 @@ import time
 from pathlib import Path
 
 import aiohttp
-from aiohttp import WSCloseCode
 import numpy as np
 import pytest
 import soundfile as sf
 import zmq
+from aiohttp import WSCloseCode
 from PIL import Image
 
 from agent.dashboard.browser import HeadlessChromium, find_chromium
 from agent.dashboard.config import DashboardConfig
-from agent.dashboard.events import (AGENT_GAP_STEPS, BINARY_FRAME, BINARY_HEADER, BINARY_MIC, LatencyMeter, RunState,
-                                    Transcript, frame_jpeg, level_dbfs, pack_binary, turn_state)
+from agent.dashboard.events import (
+    AGENT_GAP_STEPS,
+    BINARY_FRAME,
+    BINARY_HEADER,
+    BINARY_MIC,
+    LatencyMeter,
+    RunState,
+    Transcript,
+    frame_jpeg,
+    level_dbfs,
+    pack_binary,
+    turn_state,
+)
 from agent.dashboard.mic import MAX_BUFFER_STEPS, PRIME_STEPS, BrowserMicSource
 from agent.dashboard.process import page_url
 from agent.dashboard.server import Hub, make_app, start_server
 from agent.sections import load_app_config
-from core.bus import Publisher
-from core.config import ConfigError, build_dataclass
-from core.messages import Command, Control, DialogueStep, Metrics, MicAudio, RenderFrame, VadState
-from core.timing import STEP_HZ, STEP_SAMPLES
+from ecas.core.bus import Publisher
+from ecas.core.config import ConfigError, build_dataclass
+from ecas.core.messages import Command, Control, DialogueStep, Metrics, MicAudio, RenderFrame, VadState
+from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.timing import STEP_HZ, STEP_SAMPLES
 from tests.test_runtime import finish, launch, leftovers
 
 PIPELINE = ("io", "dialogue", "gesture", "render")
@@ -51,11 +63,21 @@ def test_agent_words_form_a_turn_and_a_barge_in_marks_the_word_being_spoken():
     transcript = Transcript(max_turns=10)
     for n, word in enumerate(["Hello", "there,", "how"]):
         transcript.on_step(step(n, text_piece=word, agent_speaking=True))
-    events = transcript.on_step(step(3, text_piece="are", agent_speaking=True, agent_interrupted=True,
-                                     user_vad_state=VadState.SPEAKING))
-    assert events == [{"type": "turn", "id": 0, "speaker": "agent", "start_step": 0,
-                       "words": ["Hello", "there,", "how", "are"], "partial": "", "interrupted_at": 3,
-                       "final": True}]
+    events = transcript.on_step(
+        step(3, text_piece="are", agent_speaking=True, agent_interrupted=True, user_vad_state=VadState.SPEAKING)
+    )
+    assert events == [
+        {
+            "type": "turn",
+            "id": 0,
+            "speaker": "agent",
+            "start_step": 0,
+            "words": ["Hello", "there,", "how", "are"],
+            "partial": "",
+            "interrupted_at": 3,
+            "final": True,
+        }
+    ]
     (later,) = transcript.on_step(step(4, text_piece="Sure", agent_speaking=True))
     assert (later["id"], later["words"], later["interrupted_at"]) == (1, ["Sure"], None)
 
@@ -71,12 +93,20 @@ def test_user_turn_shows_the_partial_hypothesis_until_its_words_are_final():
     transcript = Transcript(max_turns=10)
     assert transcript.on_step(step(0, user_vad_state=VadState.SPEAKING)) == []
     (partial,) = transcript.on_step(step(1, user_partial="what is"))
-    assert (partial["speaker"], partial["words"], partial["partial"], partial["final"]) == ("user", [], "what is",
-                                                                                            False)
+    assert (partial["speaker"], partial["words"], partial["partial"], partial["final"]) == (
+        "user",
+        [],
+        "what is",
+        False,
+    )
     assert transcript.on_step(step(2, user_partial="what is")) == []  # unchanged: no event
     (final,) = transcript.on_step(step(3, user_words="what is the time"))
-    assert (final["id"], final["words"], final["partial"], final["final"]) == (partial["id"],
-                                                                              ["what", "is", "the", "time"], "", True)
+    assert (final["id"], final["words"], final["partial"], final["final"]) == (
+        partial["id"],
+        ["what", "is", "the", "time"],
+        "",
+        True,
+    )
     assert [t["words"] for t in transcript.snapshot()] == [["what", "is", "the", "time"]]
 
 
@@ -109,8 +139,15 @@ def test_turn_state_names_who_holds_the_floor():
 # ---- latency, run state, frames -------------------------------------------------------------------------------
 def metrics(n: int, frame_index: int, t0: int = 1_000_000_000) -> Metrics:
     ms = 1_000_000
-    stamps = {"io": t0 + 1 * ms, "dialogue.in": t0 + 2 * ms, "dialogue": t0 + 12 * ms, "gesture.in": t0 + 13 * ms,
-              "gesture": t0 + 23 * ms, "render.in": t0 + 24 * ms, "render": t0 + 54 * ms}
+    stamps = {
+        "io": t0 + 1 * ms,
+        "dialogue.in": t0 + 2 * ms,
+        "dialogue": t0 + 12 * ms,
+        "gesture.in": t0 + 13 * ms,
+        "gesture": t0 + 23 * ms,
+        "render.in": t0 + 24 * ms,
+        "render": t0 + 54 * ms,
+    }
     return Metrics(step=n, t_origin_ns=t0, stamps=stamps, values={"frame_index": float(frame_index)})
 
 
@@ -118,8 +155,12 @@ def test_latency_of_a_step_is_split_per_stage_on_its_last_frame():
     meter = LatencyMeter(PIPELINE, history_steps=2)
     assert meter.on_metrics(metrics(0, frame_index=0), {}) == []
     (event,) = meter.on_metrics(metrics(0, frame_index=1), {})
-    assert event == {"type": "latency", "step": 0, "e2e_ms": 54.0,
-                     "stages": {"io": 1.0, "dialogue": 11.0, "gesture": 11.0, "render": 31.0}}
+    assert event == {
+        "type": "latency",
+        "step": 0,
+        "e2e_ms": 54.0,
+        "stages": {"io": 1.0, "dialogue": 11.0, "gesture": 11.0, "render": 31.0},
+    }
     (shifted,) = meter.on_metrics(metrics(1, frame_index=1), {"render": 4_000_000})  # render's clock runs 4 ms ahead
     assert (shifted["e2e_ms"], shifted["stages"]["render"]) == (50.0, 27.0)
     meter.on_metrics(metrics(2, frame_index=1), {})
@@ -128,15 +169,17 @@ def test_latency_of_a_step_is_split_per_stage_on_its_last_frame():
 
 def test_run_phase_follows_the_stages_and_the_supervisor():
     state = RunState(PIPELINE, "render", wait_for_start=True)
-    beat = lambda source, s: Control(source=source, command=Command.HEARTBEAT,  # noqa: E731
-                                     detail={"state": s, "counters": {"dropped": 2}})
+    beat = lambda source, s: Control(
+        source=source,
+        command=Command.HEARTBEAT,
+        detail={"state": s, "counters": {"dropped": 2}},
+    )
     assert state.phase == "starting"
     events = [e for s in PIPELINE for e in state.on_control(beat(s, "ready"))]
     assert [e["phase"] for e in events] == ["ready"]
     assert state.on_control(Control(source="supervisor", command=Command.START))[0]["phase"] == "running"
     assert state.counters_event({})["stages"]["io"] == {"dropped": 2}
-    assert state.on_control(Control(source="render", command=Command.EOS, detail={"handled": 9}))[0]["phase"] == \
-        "ended"
+    assert state.on_control(Control(source="render", command=Command.EOS, detail={"handled": 9}))[0]["phase"] == "ended"
 
 
 def test_raw_frames_are_encoded_to_jpeg_and_jpeg_frames_pass_through():
@@ -245,20 +288,22 @@ def test_one_page_at_a_time_holds_the_microphone_and_only_its_audio_is_relayed()
         hub = Hub(list, print, relayed.append)
         runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
         try:
-            async with aiohttp.ClientSession() as http:
-                async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as first, \
-                        http.ws_connect(f"http://127.0.0.1:{port}/ws") as second:
-                    await second.send_bytes(pack_binary(BINARY_MIC, 0, 0, b"\x01\x00"))  # not claimed: ignored
-                    await first.send_str(json.dumps({"type": "mic", "enabled": True}))
-                    assert json.loads((await first.receive()).data) == {"type": "mic", "granted": True, "reason": ""}
-                    await second.send_str(json.dumps({"type": "mic", "enabled": True}))
-                    refused = json.loads((await second.receive()).data)
-                    assert refused["granted"] is False and "another page" in refused["reason"]
-                    await first.send_bytes(pack_binary(BINARY_MIC, 1, 0, b"\x02\x00\x03\x00"))
-                    await first.send_bytes(pack_binary(BINARY_MIC, 2, 0, b"\x02\x00\x03"))  # odd length: skipped
-                    await _until(lambda: relayed)
-                    await first.close()
-                    await _until(lambda: hub.mic_page is None)
+            async with (
+                aiohttp.ClientSession() as http,
+                http.ws_connect(f"http://127.0.0.1:{port}/ws") as first,
+                http.ws_connect(f"http://127.0.0.1:{port}/ws") as second,
+            ):
+                await second.send_bytes(pack_binary(BINARY_MIC, 0, 0, b"\x01\x00"))  # not claimed: ignored
+                await first.send_str(json.dumps({"type": "mic", "enabled": True}))
+                assert json.loads((await first.receive()).data) == {"type": "mic", "granted": True, "reason": ""}
+                await second.send_str(json.dumps({"type": "mic", "enabled": True}))
+                refused = json.loads((await second.receive()).data)
+                assert refused["granted"] is False and "another page" in refused["reason"]
+                await first.send_bytes(pack_binary(BINARY_MIC, 1, 0, b"\x02\x00\x03\x00"))
+                await first.send_bytes(pack_binary(BINARY_MIC, 2, 0, b"\x02\x00\x03"))  # odd length: skipped
+                await _until(lambda: relayed)
+                await first.close()
+                await _until(lambda: hub.mic_page is None)
         finally:
             await runner.cleanup()
 
@@ -271,9 +316,8 @@ async def _connected_page(hub: Hub):
     """A page's WebSocket to a dashboard server of `hub` on a free port."""
     runner, port = await start_server(make_app(hub), "127.0.0.1", 0)
     try:
-        async with aiohttp.ClientSession() as http:
-            async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
-                yield ws
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
+            yield ws
     finally:
         await runner.cleanup()
 
@@ -329,17 +373,16 @@ def test_a_page_still_sending_gets_the_last_event_and_a_clean_close():
             await hub.close_pages()
             await runner.cleanup()
 
-        async with aiohttp.ClientSession() as http:
-            async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
-                ending = asyncio.ensure_future(end_of_run())
-                for _ in range(60):  # 0.3 s of audio blocks, reading nothing meanwhile (a busy page)
-                    await ws.send_bytes(pack_binary(BINARY_MIC, 0, 0, bytes(4000)))
-                    await asyncio.sleep(0.005)
-                received = []
-                while (msg := await ws.receive()).type == aiohttp.WSMsgType.TEXT:
-                    received.append(msg.data)
-                await ending
-                return received, ws.close_code
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"http://127.0.0.1:{port}/ws") as ws:
+            ending = asyncio.ensure_future(end_of_run())
+            for _ in range(60):  # 0.3 s of audio blocks, reading nothing meanwhile (a busy page)
+                await ws.send_bytes(pack_binary(BINARY_MIC, 0, 0, bytes(4000)))
+                await asyncio.sleep(0.005)
+            received = []
+            while (msg := await ws.receive()).type == aiohttp.WSMsgType.TEXT:
+                received.append(msg.data)
+            await ending
+            return received, ws.close_code
 
     received, code = asyncio.run(scenario())
     assert received == [json.dumps(last, separators=(",", ":"))] and code == WSCloseCode.GOING_AWAY
@@ -348,8 +391,26 @@ def test_a_page_still_sending_gets_the_last_event_and_a_clean_close():
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command to make a certificate")
 def test_https_with_a_certificate(tmp_path):
     cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1",
-                    "-keyout", str(key), "-out", str(cert)], check=True, capture_output=True)
+    subprocess.run(
+        [
+            "openssl",
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=127.0.0.1",
+            "-keyout",
+            str(key),
+            "-out",
+            str(cert),
+        ],
+        check=True,
+        capture_output=True,
+    )
 
     async def scenario():
         runner, port = await start_server(make_app(Hub(list, print)), "127.0.0.1", 0, (str(cert), str(key)))
@@ -435,8 +496,10 @@ def test_a_dashboard_port_in_use_is_refused_before_anything_starts(tmp_path):
         proc = launch(["--replay", str(wav), "--set", f"dashboard.port={port}"], tmp_path / "run")
         code, output = finish(proc, timeout_s=90)
     assert code == 2, output
-    assert output.strip() == (f"error: dashboard.port: 127.0.0.1:{port} is in use, perhaps by another run's "
-                              f"dashboard; set another dashboard.port (0 takes any free port)")
+    assert output.strip() == (
+        f"error: dashboard.port: 127.0.0.1:{port} is in use, perhaps by another run's "
+        f"dashboard; set another dashboard.port (0 takes any free port)"
+    )
     assert leftovers(proc.pid) == [] and not (tmp_path / "run").exists()
 
 
@@ -474,18 +537,20 @@ def test_the_browser_leaves_no_temporary_files(monkeypatch):
         shutil.rmtree(temp, ignore_errors=True)
 
 
-@pytest.mark.skipif(find_chromium() is None, reason="no Chromium browser installed (Debian package `chromium`; "
-                                                    "`make setup` installs it where it can)")
+@pytest.mark.skipif(
+    find_chromium() is None,
+    reason="no Chromium browser installed (Debian package `chromium`; `make setup` installs it where it can)",
+)
 def test_a_live_run_shows_in_headless_chromium(tmp_path):
     """Start and Stop from the page; a rendered frame, the agent's words and a moving latency chart in between."""
     wav = tmp_path / "talk.wav"
     t = np.arange(16000 * 30) / 16000
     sf.write(wav, (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), 16000)
     report = tmp_path / "run"
-    proc = launch(["--replay", str(wav), "--set", "dashboard.port=0", "--set", "dashboard.wait_for_start=true"],
-                  report)
-    (state, later, final_phase), code, output = _drive_page(proc, report, lambda url: _watch_page(url, proc),
-                                                            finish_timeout_s=90)
+    proc = launch(["--replay", str(wav), "--set", "dashboard.port=0", "--set", "dashboard.wait_for_start=true"], report)
+    (state, later, final_phase), code, output = _drive_page(
+        proc, report, lambda url: _watch_page(url, proc), finish_timeout_s=90
+    )
     assert code == 0, output
     steps = json.loads((report / "latency.json").read_text())["steps_measured"]
     assert steps < 30 * STEP_HZ / 2, f"Stop did not end the run: {steps} of the recording's {30 * STEP_HZ:.0f} steps"
@@ -512,8 +577,10 @@ async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, str
         await page.wait_for("window.dashboard && window.dashboard.phase === 'ready'", timeout_s=90)
         assert await page.evaluate("document.getElementById('start').disabled") is False
         await page.evaluate("document.getElementById('start').click()")
-        await page.wait_for("window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2 "
-                            "&& window.dashboard.words >= 4", timeout_s=30)
+        await page.wait_for(
+            "window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2 && window.dashboard.words >= 4",
+            timeout_s=30,
+        )
         state = await page.evaluate(PAGE_STATE)
         await page.wait_for(f"window.dashboard.chartLastStep > {state['chartLastStep'] + 3}", timeout_s=20)
         later = await page.evaluate(PAGE_STATE)
@@ -533,8 +600,7 @@ def _wait_for_file(path: Path, proc: subprocess.Popen, timeout_s: float = 60) ->
     return path.read_text()
 
 
-def _drive_page(proc: subprocess.Popen, report: Path, page_script, finish_timeout_s: float,
-                url_timeout_s: float = 60):
+def _drive_page(proc: subprocess.Popen, report: Path, page_script, finish_timeout_s: float, url_timeout_s: float = 60):
     """Run `page_script(url)` (a coroutine function) against the run's dashboard, then let the run end; the
     process is killed if anything fails. Returns (the script's result, exit code, output)."""
     try:
@@ -552,11 +618,13 @@ async def _press_stop(page) -> None:
     connection (the run is over): a page closed at once can take the command with it before its WebSocket sends
     it (the run then never stops)."""
     await page.evaluate("document.getElementById('stop').click()")
-    await page.wait_for("window.dashboard.phase === 'stopped' || "
-                        "document.getElementById('connection').textContent === 'offline'", timeout_s=30)
+    await page.wait_for(
+        "window.dashboard.phase === 'stopped' || document.getElementById('connection').textContent === 'offline'",
+        timeout_s=30,
+    )
 
 
-REAL_CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "speech" / "librivox_0870.wav"
+REAL_CLIP = data_root() / "speech" / "librivox_0870.wav"
 VIDEO_SPREAD = """(() => {
   const c = document.getElementById('video');
   const px = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
@@ -575,22 +643,38 @@ def test_real_dialogue_and_renderer_show_in_the_page(tmp_path):
     """The real stages: dialogue (VAD, ASR, responder, TTS), gesture (when the configured checkpoints are on
     disk; else the test stage) and renderer."""
     root = Path(__file__).resolve().parents[1]
-    lm = load_app_config(root / "configs" / "default.yaml").gesture.lm_checkpoint
-    gesture = [] if lm is not None and (root / lm).exists() else [
-        "--set", "run.components.gesture=tests.components:wave_gesture"]
+    lm = load_app_config(DEFAULT_CONFIG).gesture.lm_checkpoint
+    gesture = (
+        []
+        if lm is not None and (root / lm).exists()
+        else ["--set", "run.components.gesture=tests.components:wave_gesture"]
+    )
     report = tmp_path / "run"
-    cmd = [sys.executable, str(root / "launch.py"), "--replay", str(REAL_CLIP), "--report", str(report),
-           "--set", "dashboard.port=0", "--set", "dashboard.wait_for_start=true", *gesture]
-    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+    cmd = [
+        sys.executable,
+        str(root / "launch.py"),
+        "--replay",
+        str(REAL_CLIP),
+        "--report",
+        str(report),
+        "--set",
+        "dashboard.port=0",
+        "--set",
+        "dashboard.wait_for_start=true",
+        *gesture,
+    ]
+    proc = subprocess.Popen(
+        cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
 
     async def watch(url: str) -> dict:
         async with HeadlessChromium(url) as page:
             await page.wait_for("window.dashboard && window.dashboard.phase === 'ready'", timeout_s=180)
             await page.evaluate("document.getElementById('start').click()")
             await page.wait_for("document.querySelectorAll('.msg.agent span').length >= 2", timeout_s=60)
-            await page.wait_for("window.dashboard.latencySamples > 5 && window.dashboard.frames > 10",
-                                timeout_s=60)  # wait for the events, do not count them in a window
+            await page.wait_for(
+                "window.dashboard.latencySamples > 5 && window.dashboard.frames > 10", timeout_s=60
+            )  # wait for the events, do not count them in a window
             return await page.evaluate(VIDEO_SPREAD)
 
     seen, code, output = _drive_page(proc, report, watch, finish_timeout_s=60)
@@ -644,15 +728,32 @@ def test_the_real_dialogue_answers_the_pages_microphone(tmp_path):
     clip = tmp_path / "clip_then_pause.wav"
     sf.write(clip, np.concatenate([pcm, np.zeros(rate * 5, np.int16)]), rate, subtype="PCM_16")
     report = tmp_path / "run"
-    cmd = [sys.executable, str(Path(__file__).resolve().parents[1] / "launch.py"), "--browser-mic", "--report",
-           str(report), "--set", "dashboard.port=0", "--set", "run.components.gesture=tests.components:wave_gesture"]
-    proc = subprocess.Popen(cmd, cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve().parents[1] / "launch.py"),
+        "--browser-mic",
+        "--report",
+        str(report),
+        "--set",
+        "dashboard.port=0",
+        "--set",
+        "run.components.gesture=tests.components:wave_gesture",
+    ]
+    proc = subprocess.Popen(
+        cmd,
+        cwd=Path(__file__).resolve().parents[1],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
 
     async def talk(url: str) -> str:
         async with HeadlessChromium(url, flags=(*FAKE_MIC, f"--use-file-for-fake-audio-capture={clip}")) as page:
-            await page.wait_for("window.dashboard && !document.getElementById('mic').hidden "
-                                "&& window.dashboard.frames > 0", timeout_s=180)
+            await page.wait_for(
+                "window.dashboard && !document.getElementById('mic').hidden && window.dashboard.frames > 0",
+                timeout_s=180,
+            )
             await page.evaluate("document.getElementById('mic').click()")
             await page.wait_for("document.querySelectorAll('.msg.agent span').length >= 2", timeout_s=60)
             text = await page.evaluate("document.getElementById('turns').innerText")

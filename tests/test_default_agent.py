@@ -14,31 +14,40 @@ import soundfile as sf
 import torch
 
 from agent.sections import load_app_config
-from core.timing import SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer
 from dialogue.text_vocab import LOCAL_SPEC, word_token
+from ecas.core.paths import CHECKPOINTS_DIR, DEFAULT_CONFIG, data_root
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from gesture.data.audio import load_audio
 from gesture.data.beat2 import Word, find_takes
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.data import LMDataset
-from gesture.lm.tokenize import (agent_words, place_words, tokenize_directory, tokenize_take, vad_from_frames,
-                                 vad_from_words)
+from gesture.lm.tokenize import (
+    agent_words,
+    place_words,
+    tokenize_directory,
+    tokenize_take,
+    vad_from_frames,
+    vad_from_words,
+)
 from gesture.process import build_generator
 from gesture.synth.build import generator_fingerprint
 
 REPO = Path(__file__).resolve().parents[1]
-CHECKPOINTS = REPO / "checkpoints"
-BEAT2 = REPO.parent / "shared" / "data" / "beat2"
+CHECKPOINTS = CHECKPOINTS_DIR
+BEAT2 = data_root() / "beat2"
 SHIPPED_LIMIT_BYTES = 60 * 1024 * 1024
 
 
 @pytest.fixture(scope="module")
 def generator():
     torch.set_num_threads(1)
-    app = load_app_config(REPO / "configs" / "default.yaml")
+    app = load_app_config(DEFAULT_CONFIG)
     cfg = app.gesture
-    assert cfg.lm_checkpoint is not None and cfg.codec_checkpoints is not None, "configs/default.yaml: gesture paths"
+    assert cfg.lm_checkpoint is not None and cfg.codec_checkpoints is not None, (
+        "ecas/configs/default.yaml: gesture paths"
+    )
     import dataclasses
 
     cfg = dataclasses.replace(cfg, dialogue_spec=LOCAL_SPEC)
@@ -55,17 +64,19 @@ def generator():
 @pytest.fixture(scope="module")
 def speech_condition():
     """50 steps of the real clip's speech as the local backend codes it, with word tokens every few steps."""
-    pcm = load_audio(BEAT2 / "2_scott_0_1_1.wav", SAMPLE_RATE_HZ)[2 * SAMPLE_RATE_HZ:][: 50 * STEP_SAMPLES]
+    pcm = load_audio(BEAT2 / "2_scott_0_1_1.wav", SAMPLE_RATE_HZ)[2 * SAMPLE_RATE_HZ :][: 50 * STEP_SAMPLES]
     codes = SpeechTokenizer.load(DEFAULT_CHECKPOINT).encode(torch.from_numpy(pcm)[None])[0].numpy()  # (8, 50)
     text = np.full(50, -1)
-    words = "so we went there and then we saw it was great fun today".split()
+    words = ["so", "we", "went", "there", "and", "then", "we", "saw", "it", "was", "great", "fun", "today"]
     text[::4] = [word_token(w) for w in words][: len(text[::4])]  # 13 word starts
     return text, codes, pcm
 
 
 def _run(gen, text, codes, pcm):
     gen.reset()
-    steps = [gen.step(int(text[t]), codes[:, t], pcm[t * STEP_SAMPLES:(t + 1) * STEP_SAMPLES]) for t in range(len(text))]
+    steps = [
+        gen.step(int(text[t]), codes[:, t], pcm[t * STEP_SAMPLES : (t + 1) * STEP_SAMPLES]) for t in range(len(text))
+    ]
     return steps
 
 
@@ -137,15 +148,23 @@ def _dyadic_take(root: Path, seconds: float = 4.0) -> None:
     n = int(seconds * 25)
     vad = np.zeros(n, np.float32)
     vad[25:75] = 1
-    np.savez(root / "smplxflame_25" / "1_agent_0_0_0.npz", poses=motion.poses[:n].reshape(n, -1),
-             trans=motion.trans[:n], expressions=motion.expressions[:n], betas=data["betas"], mocap_frame_rate=25,
-             vad=vad)
+    np.savez(
+        root / "smplxflame_25" / "1_agent_0_0_0.npz",
+        poses=motion.poses[:n].reshape(n, -1),
+        trans=motion.trans[:n],
+        expressions=motion.expressions[:n],
+        betas=data["betas"],
+        mocap_frame_rate=25,
+        vad=vad,
+    )
     pcm, rate = sf.read(BEAT2 / "2_scott_0_1_1.wav", dtype="float32")
     sf.write(root / "wave16k" / "1_agent_0_0_0.wav", pcm[: int(seconds * rate)] * 0.5, rate)
     sf.write(root / "wave16k" / "1_agent_0_0_0_agent.wav", pcm[: int(seconds * rate)], rate)
-    words = [{"word": "hello", "start": 1.0, "end": 1.3, "speaker": "agent"},
-             {"word": "right", "start": 1.02, "end": 1.2, "speaker": "user"},
-             {"word": "friend", "start": 1.4, "end": 1.8, "speaker": "agent"}]
+    words = [
+        {"word": "hello", "start": 1.0, "end": 1.3, "speaker": "agent"},
+        {"word": "right", "start": 1.02, "end": 1.2, "speaker": "user"},
+        {"word": "friend", "start": 1.4, "end": 1.8, "speaker": "agent"},
+    ]
     (root / "whisper_transcription" / "1_agent_0_0_0.json").write_text(json.dumps({"segments": [{"words": words}]}))
     (root / "train_test_split.csv").write_text("id,type\n1_agent_0_0_0,train\n")
     assert n30  # the clip is long enough
@@ -163,9 +182,17 @@ def test_tokenize_a_dyadic_session(tmp_path):
         assert rec["text_tokens"][int(1.4 * STEP_HZ)] == word_token("friend")
         assert (rec["text_tokens"] >= 0).sum() == 2
         assert rec["vad"].tolist() == [0] * 12 + [1] * 26 + [0] * 12  # frames 25..74 at 25 fps
-        codes = SpeechTokenizer.load(DEFAULT_CHECKPOINT).encode(torch.from_numpy(
-            load_audio(tmp_path / "data" / "wave16k" / "1_agent_0_0_0_agent.wav", SAMPLE_RATE_HZ)[: 50 * STEP_SAMPLES]
-        )[None])[0].numpy()
+        codes = (
+            SpeechTokenizer.load(DEFAULT_CHECKPOINT)
+            .encode(
+                torch.from_numpy(
+                    load_audio(tmp_path / "data" / "wave16k" / "1_agent_0_0_0_agent.wav", SAMPLE_RATE_HZ)[
+                        : 50 * STEP_SAMPLES
+                    ]
+                )[None]
+            )[0]
+            .numpy()
+        )
         np.testing.assert_array_equal(rec["audio_codes"], codes)  # the agent channel, as the runtime codes it
     LMDataset(tmp_path / "lm", 20, LOCAL_SPEC)  # readable by the LM trainer, spec checked
 
@@ -184,12 +211,27 @@ def test_tokenize_a_take_matches_the_codecs_own_encoding(tmp_path):
 
 @pytest.mark.slow
 def test_training_chain_end_to_end_tiny(tmp_path):
-    env = {**os.environ, "SESSIONS": "2", "MINUTES": "0.5", "CODEC_STEPS": "10", "DECODER_REGIONS": "upper lower",
-           "DECODER_STEPS": "4",
-           "LM_EPOCHS": "1", "WORK": str(tmp_path / "work"), "SHIP": str(tmp_path / "ship"),
-           "SYNTHETIC": str(tmp_path / "synthetic"), "PY": str(REPO / ".venv" / "bin" / "python")}
-    subprocess.run(["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=env, check=True,
-                   capture_output=True, text=True)
+    env = {
+        **os.environ,
+        "SESSIONS": "2",
+        "MINUTES": "0.5",
+        "CODEC_STEPS": "10",
+        "DECODER_REGIONS": "upper lower",
+        "DECODER_STEPS": "4",
+        "LM_EPOCHS": "1",
+        "WORK": str(tmp_path / "work"),
+        "SHIP": str(tmp_path / "ship"),
+        "SYNTHETIC": str(tmp_path / "synthetic"),
+        "PY": str(REPO / ".venv" / "bin" / "python"),
+    }
+    subprocess.run(
+        ["bash", str(REPO / "scripts" / "train_default.sh")],
+        cwd=REPO,
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
     times = dict(line.split("\t") for line in (tmp_path / "work" / "wall_times.tsv").read_text().splitlines())
     assert {"synthetic", "chunk_cache", "codecs", "decoders", "tokenize", "lm", "ship"} <= set(times)
     ship = tmp_path / "ship"
@@ -203,10 +245,22 @@ def test_training_chain_end_to_end_tiny(tmp_path):
     for card in ("codecs/README.md", "gesture_lm/README.md"):  # the cards name the generator that made the data
         assert generator_fingerprint()[:16] in (ship / card).read_text()
     # a second run trains only the lower codec and copies the others: its card says where each was trained
-    again = {**env, "CODEC_REGIONS": "lower", "CODECS_FROM": str(tmp_path / "work"), "DECODER_REGIONS": "upper",
-             "WORK": str(tmp_path / "work2"), "SHIP": str(tmp_path / "ship2")}
-    subprocess.run(["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=again, check=True,
-                   capture_output=True, text=True)
+    again = {
+        **env,
+        "CODEC_REGIONS": "lower",
+        "CODECS_FROM": str(tmp_path / "work"),
+        "DECODER_REGIONS": "upper",
+        "WORK": str(tmp_path / "work2"),
+        "SHIP": str(tmp_path / "ship2"),
+    }
+    subprocess.run(
+        ["bash", str(REPO / "scripts" / "train_default.sh")],
+        cwd=REPO,
+        env=again,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
     card = (tmp_path / "ship2" / "codecs" / "README.md").read_text()
     assert f"- upper and face: copied unchanged from `{tmp_path / 'work'}`" in card
     assert "- lower: trained in this run" in card
@@ -215,8 +269,9 @@ def test_training_chain_end_to_end_tiny(tmp_path):
 def _train_default_fails(tmp_path, **options) -> str:
     """Run scripts/train_default.sh with these options, expecting it to stop before any stage: its error text."""
     env = {**os.environ, "WORK": str(tmp_path / "work"), "SYNTHETIC": str(tmp_path / "synthetic"), **options}
-    run = subprocess.run(["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=env,
-                         capture_output=True, text=True)
+    run = subprocess.run(
+        ["bash", str(REPO / "scripts" / "train_default.sh")], cwd=REPO, env=env, capture_output=True, text=True
+    )
     assert run.returncode != 0
     assert not (tmp_path / "work").exists() and not (tmp_path / "synthetic").exists()
     return run.stderr

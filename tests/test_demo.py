@@ -19,10 +19,27 @@ def demo_runs(tmp_path_factory) -> dict:
     offline run must not depend on the machine's load) -> {run: (stdout, report dir, mp4)}."""
     root = tmp_path_factory.mktemp("demo")
     seeds = {"a": [], "b": ["--seed", "0"]}
-    procs = {run: subprocess.Popen([sys.executable, "launch.py", "--headless", *seed, "--mp4", str(root / f"{run}.mp4"),
-                                    "--report", str(root / run), "--set", "render.size=160"], cwd=ROOT,
-                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for run, seed in seeds.items()}
+    procs = {
+        run: subprocess.Popen(
+            [
+                sys.executable,
+                "launch.py",
+                "--headless",
+                *seed,
+                "--mp4",
+                str(root / f"{run}.mp4"),
+                "--report",
+                str(root / run),
+                "--set",
+                "render.size=160",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for run, seed in seeds.items()
+    }
     runs = {}
     for run, proc in procs.items():
         output, _ = proc.communicate(timeout=600)
@@ -60,7 +77,7 @@ def test_demo_listens_answers_and_gestures(demo_runs):
     assert np.median(motion) > 0.05  # the avatar keeps moving
     agent_start = int(agent[0]["start_s"] * 25)
     audio = info["audio"].mean(axis=0)
-    assert np.abs(audio[agent_start * 960:(agent_start + 50) * 960]).max() > 0.05  # the answer is heard
+    assert np.abs(audio[agent_start * 960 : (agent_start + 50) * 960]).max() > 0.05  # the answer is heard
 
 
 @needs_osmesa
@@ -85,15 +102,32 @@ def test_offline_runs_are_identical_with_the_same_seed(demo_runs):
 
 def test_speak_mode_makes_the_agent_say_a_recording(tmp_path):
     """`--speak`: the playback backend speaks the file with its transcript; the user side is silence."""
-    proc = subprocess.run([sys.executable, "launch.py", "--speak", "assets/examples/librivox_0870.wav", "--headless",
-                           "--report", str(tmp_path),
-                           "--set", "dialogue.playback.transcript=assets/examples/librivox_0870.txt",
-                           "--set", "run.components.render=tests.components:recorder"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "launch.py",
+            "--speak",
+            "ecas/examples/librivox_0870.wav",
+            "--headless",
+            "--report",
+            str(tmp_path),
+            "--set",
+            "dialogue.playback.transcript=ecas/examples/librivox_0870.txt",
+            "--set",
+            "run.components.render=tests.components:recorder",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     turns = json.loads((tmp_path / "transcript.json").read_text())["turns"]
     agent_words = [w["word"].lower() for t in turns if t["speaker"] == "agent" for w in t["words"]]
     assert "dashwood" in agent_words and not [t for t in turns if t["speaker"] == "user"]
-    steps = [json.loads(line)["step"] for line in (tmp_path / "received.jsonl").read_text().splitlines()
-             if json.loads(line)["topic"] == "gesture.step"]
+    steps = [
+        json.loads(line)["step"]
+        for line in (tmp_path / "received.jsonl").read_text().splitlines()
+        if json.loads(line)["topic"] == "gesture.step"
+    ]
     assert steps == list(range(len(steps))) and len(steps) * 0.08 > 7.1  # the whole recording was gestured

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from core.messages import DialogueStep, VadState
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.text_vocab import LOCAL_SPEC, word_token
+from ecas.core.messages import DialogueStep, VadState
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from tests.dialogue_helpers import BEAT2_WAV, LIBRIVOX, blocks, dialogue_cfg, load_24k, run_component, silence
 
 STEP_S = STEP_SAMPLES / SAMPLE_RATE_HZ
@@ -76,8 +76,14 @@ def test_barge_in_cuts_the_agent_and_the_user_is_answered(tmp_path):
     """The user speaks again 2.3 s after finishing, over the agent's answer; the agent stops and answers."""
     speech = load_24k(LIBRIVOX)
     overlap_start = (len(speech) + int(2.3 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
-    pcm = np.concatenate([speech, silence((overlap_start - len(speech)) / SAMPLE_RATE_HZ),
-                          speech[: int(3.0 * SAMPLE_RATE_HZ)], silence(4.0)])
+    pcm = np.concatenate(
+        [
+            speech,
+            silence((overlap_start - len(speech)) / SAMPLE_RATE_HZ),
+            speech[: int(3.0 * SAMPLE_RATE_HZ)],
+            silence(4.0),
+        ]
+    )
     steps, transcript = run_component(dialogue_cfg(barge_in_s=0.3), pcm, tmp_path / "barge")
     cut = [i for i, s in enumerate(steps) if s.agent_interrupted]
     assert len(cut) == 1
@@ -106,9 +112,9 @@ def room_impulse_response() -> np.ndarray:
 
 def converse_with_echo(echo_mode: str, run_dir, user=None, echo_gain=0.5):
     """Loudspeakers: the mic hears the user plus the agent's own output (0.2 s later, reverberated)."""
-    from core.messages import AudioUser
-    from core.component import RunContext
     from dialogue.process import create_component
+    from ecas.core.component import RunContext
+    from ecas.core.messages import AudioUser
 
     comp = create_component(dialogue_cfg(echo={"mode": echo_mode}), RunContext(run_dir, False, 0, "e"))
     user = np.concatenate([load_24k(LIBRIVOX), silence(4.5)]) if user is None else user
@@ -117,10 +123,10 @@ def converse_with_echo(echo_mode: str, run_dir, user=None, echo_gain=0.5):
     echo = np.zeros(len(user_blocks) * STEP_SAMPLES + delay + len(ir) + STEP_SAMPLES, np.float32)
     outs = []
     for i, block in enumerate(user_blocks):
-        (out,) = comp.handle(AudioUser(pcm=block + echo_gain * echo[i * STEP_SAMPLES: (i + 1) * STEP_SAMPLES], step=i))
+        (out,) = comp.handle(AudioUser(pcm=block + echo_gain * echo[i * STEP_SAMPLES : (i + 1) * STEP_SAMPLES], step=i))
         outs.append(out)
         start = (i + 1) * STEP_SAMPLES + delay  # played from the next step on, heard `delay` later
-        echo[start: start + STEP_SAMPLES + len(ir) - 1] += np.convolve(out.agent_pcm, ir)
+        echo[start : start + STEP_SAMPLES + len(ir) - 1] += np.convolve(out.agent_pcm, ir)
     comp.close()
     return outs
 
@@ -135,8 +141,14 @@ def test_echo_of_the_agents_own_voice_does_not_barge_in(tmp_path):
 def test_the_user_can_still_barge_in_over_a_quieter_echo(tmp_path):
     speech = load_24k(LIBRIVOX)
     overlap_start = (len(speech) + int(2.3 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
-    user = np.concatenate([speech, silence((overlap_start - len(speech)) / SAMPLE_RATE_HZ),
-                           speech[: int(3.0 * SAMPLE_RATE_HZ)], silence(3.0)])
+    user = np.concatenate(
+        [
+            speech,
+            silence((overlap_start - len(speech)) / SAMPLE_RATE_HZ),
+            speech[: int(3.0 * SAMPLE_RATE_HZ)],
+            silence(3.0),
+        ]
+    )
     steps = converse_with_echo("gate", tmp_path, user, echo_gain=0.1)
     cut = [i for i, s in enumerate(steps) if s.agent_interrupted]
     assert len(cut) == 1 and cut[0] > overlap_start // STEP_SAMPLES
@@ -174,9 +186,9 @@ def test_clipped_speech_is_still_understood_and_answered(gain, min_known_words, 
 
 
 def test_non_finite_and_wrong_sized_input(tmp_path):
-    from core.messages import AudioUser
-    from core.component import RunContext
     from dialogue.process import create_component
+    from ecas.core.component import RunContext
+    from ecas.core.messages import AudioUser
 
     comp = create_component(dialogue_cfg(), RunContext(tmp_path, False, 0, "x"))
     bad = np.full(STEP_SAMPLES, np.nan, np.float32)
@@ -202,9 +214,9 @@ def test_dropped_input_steps_keep_transcript_times_true(tmp_path):
     """Live mode may drop audio.user steps: times after the gap still follow the message step numbers."""
     import json
 
-    from core.messages import AudioUser
-    from core.component import RunContext
     from dialogue.process import create_component
+    from ecas.core.component import RunContext
+    from ecas.core.messages import AudioUser
 
     comp = create_component(dialogue_cfg(), RunContext(tmp_path, True, 0, "live"))
     speech_blocks = blocks(np.concatenate([load_24k(LIBRIVOX), silence(3.0)]))

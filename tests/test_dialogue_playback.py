@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.audio_file import load_audio
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from dialogue.config import ConfigError
 from dialogue.text_vocab import word_token
+from ecas.core.audio_file import load_audio
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from tests.dialogue_helpers import BEAT2_WAV, LIBRIVOX, dialogue_cfg, load_24k, run_component, silence
 
 DATA = Path(__file__).parent / "data" / "dialogue"

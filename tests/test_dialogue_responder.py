@@ -36,8 +36,18 @@ def test_rules_never_repeat_a_line_back_to_back_and_vary():
     answers = [r.respond("hello there") for _ in range(12)]
     assert all(a != b for a, b in zip(answers, answers[1:]))
     assert len(set(answers)) >= 3
-    topics = {r.respond(t) for t in ("i went on a trip to rome", "my sister plays the piano", "my boss is strict",
-                                     "it is raining again", "why do cats purr", "thanks a lot", "goodbye")}
+    topics = {
+        r.respond(t)
+        for t in (
+            "i went on a trip to rome",
+            "my sister plays the piano",
+            "my boss is strict",
+            "it is raining again",
+            "why do cats purr",
+            "thanks a lot",
+            "goodbye",
+        )
+    }
     assert len(topics) == 7
 
 
@@ -76,8 +86,9 @@ def chat_server():
 
 
 def _endpoint(url, timeout_s=2.0):
-    return OpenAIChatResponder(url=url, model="test", timeout_s=timeout_s, max_tokens=50,
-                               system_prompt="be brief", fallback_text=FALLBACK)
+    return OpenAIChatResponder(
+        url=url, model="test", timeout_s=timeout_s, max_tokens=50, system_prompt="be brief", fallback_text=FALLBACK
+    )
 
 
 def test_endpoint_streams_sentences_and_keeps_history(chat_server):
@@ -105,8 +116,7 @@ def test_agent_speaks_the_endpoints_answer(chat_server, tmp_path):
 
 
 def test_endpoint_down_the_agent_says_so_and_does_not_crash(tmp_path):
-    cfg = dialogue_cfg(responder={"kind": "openai", "url": "http://127.0.0.1:9/v1/chat/completions",
-                                  "timeout_s": 0.5})
+    cfg = dialogue_cfg(responder={"kind": "openai", "url": "http://127.0.0.1:9/v1/chat/completions", "timeout_s": 0.5})
     steps, transcript = run_component(cfg, np.concatenate([load_24k(LIBRIVOX), silence(7.0)]), tmp_path)
     agent = [t for t in transcript["turns"] if t["speaker"] == "agent"]
     assert agent and agent[0]["text"] == FALLBACK and any(s.agent_speaking for s in steps)

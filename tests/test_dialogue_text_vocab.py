@@ -1,7 +1,7 @@
 """The local text vocabulary: hashed words, pinned ids, and the condition spec it defines."""
 
-from core.spec import ConditionSpec
 from dialogue.text_vocab import LOCAL_SPEC, TEXT_VOCAB_SIZE, normalize_word, word_token
+from ecas.core.spec import ConditionSpec
 
 
 def test_pinned_ids_never_change():

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.config import ConfigError
-from core.timing import MOTION_FPS
+from ecas.core.config import ConfigError
+from ecas.core.timing import MOTION_FPS
 from gesture.config import FaceLayerConfig
 from gesture.eval.realism import FACE_BASELINE_S, FACE_EVENTS, face_activations, face_stats
 from gesture.face_layer import BASELINE_S, BLINK_HEIGHT, BLINK_MIN_GAP_S, FaceLayer
@@ -24,7 +24,7 @@ FRAMES = int(MINUTES * 60 * MOTION_FPS)
 
 def _stepped(layer: FaceLayer, expressions: np.ndarray) -> np.ndarray:
     """The layer run as the generator runs it: 2 frames a step."""
-    return np.concatenate([layer.step(expressions[i:i + 2]) for i in range(0, len(expressions), 2)])
+    return np.concatenate([layer.step(expressions[i : i + 2]) for i in range(0, len(expressions), 2)])
 
 
 def _own_blinks(per_minute: float) -> np.ndarray:
@@ -95,8 +95,12 @@ def test_streaming_is_causal_and_reset_replays():
 def test_generator_applies_the_layer_to_the_face_only():
     conditions = [(5, np.arange(8) % 12)] * 40
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
-    layered = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1,
-                               face_layer=FaceLayer(MOTION_FPS, seed=1, blinks_per_minute=60, brow_cutoff_hz=0.5))
+    layered = GestureGenerator(
+        tiny_lm(),
+        tiny_codecs(),
+        seed=1,
+        face_layer=FaceLayer(MOTION_FPS, seed=1, blinks_per_minute=60, brow_cutoff_hz=0.5),
+    )
     a = [plain.step(text, audio) for text, audio in conditions]
     b = [layered.step(text, audio) for text, audio in conditions]
     for x, y in zip(a, b):

@@ -6,12 +6,17 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import DataError
+from ecas.core.errors import DataError
 from gesture.body.skeleton import PARENTS
 from gesture.eval.evaluate import main as evaluate_main
 from gesture.eval.fgd import frechet_distance
-from gesture.eval.fgd_vaeskconv import (VAESKConvEncoder, edge_neighbours, edge_topology, load_vaeskconv_encoder,
-                                        skeleton_chains)
+from gesture.eval.fgd_vaeskconv import (
+    VAESKConvEncoder,
+    edge_neighbours,
+    edge_topology,
+    load_vaeskconv_encoder,
+    skeleton_chains,
+)
 from tests.data.beat2_clip import CLIP_NPZ, needs_clip
 
 torch.set_num_threads(1)

@@ -32,7 +32,8 @@ def test_only_the_decoder_half_changes(trained):
     assert changed, "the decoder did not learn"
     assert all(k.startswith(DECODER_HALF) for k in changed), sorted(changed)
     assert any(k.startswith("seanet_decoder.") for k in changed) and any(
-        k.startswith("transformer_decoder.") for k in changed)
+        k.startswith("transformer_decoder.") for k in changed
+    )
 
 
 def test_codes_of_real_motion_are_unchanged(trained):
@@ -49,7 +50,19 @@ def test_a_missing_trained_codec_is_a_clear_error(tmp_path, capsys, option):
     config = tmp_path / "tiny.yaml"
     config.write_text(yaml.safe_dump(TINY_YAML))
     nowhere = tmp_path / "nowhere"
-    code = main(["--config", str(config), "--region", "upper", "--data", str(CLIP), "--out", str(tmp_path / "o"),
-                 option, str(nowhere)])
+    code = main(
+        [
+            "--config",
+            str(config),
+            "--region",
+            "upper",
+            "--data",
+            str(CLIP),
+            "--out",
+            str(tmp_path / "o"),
+            option,
+            str(nowhere),
+        ]
+    )
     assert code == 2
     assert capsys.readouterr().err.strip() == f"error: {option} {nowhere}: no checkpoint there"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.config import ConfigError
-from core.timing import MOTION_FPS, STEP_SAMPLES
+from ecas.core.config import ConfigError
+from ecas.core.timing import MOTION_FPS, STEP_SAMPLES
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.config import FootLockConfig
 from gesture.foot_lock import LEGS, FootLock
@@ -38,8 +38,9 @@ def _sliding_stance(frames: int, hip_swing_rad: float = 0.0) -> tuple[np.ndarray
 
 
 def _stepped(lock: FootLock, poses, trans, contacts, agent_pcm=None) -> np.ndarray:
-    return np.concatenate([lock.step(poses[i:i + 2], trans[i:i + 2], contacts[i:i + 2], agent_pcm)
-                           for i in range(0, len(poses), 2)])
+    return np.concatenate(
+        [lock.step(poses[i : i + 2], trans[i : i + 2], contacts[i : i + 2], agent_pcm) for i in range(0, len(poses), 2)]
+    )
 
 
 def _ankles(poses, trans) -> np.ndarray:
@@ -51,8 +52,9 @@ def test_planted_ankles_stay_where_they_were_planted():
     out = _stepped(FootLock(SKELETON, MOTION_FPS), poses, trans, np.ones((50, 4), np.float32))
     decoded, locked = _ankles(poses, trans), _ankles(out, trans)
     assert np.linalg.norm(decoded[-1] - decoded[0], axis=-1).min() > 0.02  # the decoded feet slide ...
-    np.testing.assert_allclose(locked[BLEND_FRAMES:], np.broadcast_to(decoded[0], locked[BLEND_FRAMES:].shape),
-                               atol=1e-4)  # ... the locked ones do not
+    np.testing.assert_allclose(
+        locked[BLEND_FRAMES:], np.broadcast_to(decoded[0], locked[BLEND_FRAMES:].shape), atol=1e-4
+    )  # ... the locked ones do not
     others = [j for j in range(55) if j not in LEG_JOINTS]
     np.testing.assert_array_equal(out[:, others], poses[:, others])
     feet = forward_kinematics_np(SKELETON, out, trans)[1][:, ANKLES, :3, :3]  # the feet keep their decoded turn
@@ -67,7 +69,7 @@ def test_legs_without_contact_pass_untouched_and_a_lifted_foot_returns_to_the_de
     contacts[20:] = 0.0  # the feet lift at frame 20
     out = _stepped(FootLock(SKELETON, MOTION_FPS), poses, trans, contacts)
     assert not np.allclose(out[19], poses[19])
-    np.testing.assert_array_equal(out[20 + STEP_FRAMES:], poses[20 + STEP_FRAMES:])
+    np.testing.assert_array_equal(out[20 + STEP_FRAMES :], poses[20 + STEP_FRAMES :])
     assert not np.allclose(out[20 + STEP_FRAMES - 2], poses[20 + STEP_FRAMES - 2])  # not before it
 
 
@@ -86,8 +88,16 @@ def test_the_lock_lets_go_sooner_while_the_agent_speaks():
 
     def let_go_at_m(agent_pcm) -> float:
         """How far the decoded left ankle had slid when the lock, landed, first moved it off its anchor."""
-        locked = _ankles(_stepped(FootLock(SKELETON, MOTION_FPS, release_m=0.25, release_speaking_m=0.1), poses,
-                                  trans, contacts, agent_pcm), trans)[BLEND_FRAMES:, 0]
+        locked = _ankles(
+            _stepped(
+                FootLock(SKELETON, MOTION_FPS, release_m=0.25, release_speaking_m=0.1),
+                poses,
+                trans,
+                contacts,
+                agent_pcm,
+            ),
+            trans,
+        )[BLEND_FRAMES:, 0]
         frame = BLEND_FRAMES + int(np.argmax(np.linalg.norm(locked - decoded[0], axis=-1) > 1e-3))
         return float(np.linalg.norm(decoded[frame] - decoded[0]))
 

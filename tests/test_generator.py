@@ -159,16 +159,16 @@ def test_soak_memory_stays_flat():
     import os
     import resource
 
-    from core.config import build_dataclass, load_yaml
+    from ecas.core.config import build_dataclass, load_yaml
     from gesture.codec.build import build_codec
     from gesture.codec.config import load_codec_config
     from gesture.lm.config import LMFileConfig
     from gesture.lm.model import GestureLM
 
     steps = int(os.environ.get("GESTURE_SOAK_STEPS", 45_000))
-    cfg = build_dataclass(LMFileConfig, load_yaml("configs/lm/small.yaml"))
+    cfg = build_dataclass(LMFileConfig, load_yaml("ecas/configs/lm/small.yaml"))
     lm = GestureLM(cfg.lm, cfg.condition).eval()
-    codec_cfg = load_codec_config("configs/codec/small.yaml").codec
+    codec_cfg = load_codec_config("ecas/configs/codec/small.yaml").codec
     gen = GestureGenerator(lm, {r: build_codec(codec_cfg, r).eval() for r in ("upper", "lower", "face")})
     rng = np.random.default_rng(0)
 
@@ -184,9 +184,11 @@ def test_soak_memory_stays_flat():
         if i % 5000 == 0:
             print(f"soak step {i}: RSS {samples[-1]:.1f} MB", flush=True)
     warm = samples[len(samples) // 10]
-    print(f"soak: {steps} steps, RSS MB first {samples[0]:.1f}, after warm-up {warm:.1f}, last {samples[-1]:.1f}, "
-          f"max {max(samples):.1f}")
-    assert max(samples[len(samples) // 10:]) - warm < 20, samples
+    print(
+        f"soak: {steps} steps, RSS MB first {samples[0]:.1f}, after warm-up {warm:.1f}, last {samples[-1]:.1f}, "
+        f"max {max(samples):.1f}"
+    )
+    assert max(samples[len(samples) // 10 :]) - warm < 20, samples
 
 
 @pytest.mark.parametrize("kernels", KERNELS)
@@ -212,14 +214,16 @@ def test_bfloat16_step_path_decodes_close_to_float32(kernels):
 
 def _geodesic_rad(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle (rad) of the rotation between axis-angle rotations a and b (..., 3)."""
-    relative = axis_angle_to_matrix(torch.from_numpy(a).double()).transpose(-1, -2) @ \
-        axis_angle_to_matrix(torch.from_numpy(b).double())
+    relative = axis_angle_to_matrix(torch.from_numpy(a).double()).transpose(-1, -2) @ axis_angle_to_matrix(
+        torch.from_numpy(b).double()
+    )
     cosine = (relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
     return torch.arccos(cosine.clamp(-1.0, 1.0)).numpy()
 
 
 def test_idle_slices_load_from_the_reference_layout(tmp_path):
     from gesture.lm.idle import load_idle_slices
+
     np.savez(tmp_path / "idle_upper_tokens_slices.npz", **{"0": np.arange(8 * 6).reshape(1, 8, 6) % 16})
     with pytest.raises(FileNotFoundError, match="idle_face_tokens_slices.npz"):
         load_idle_slices(tmp_path)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.component import RunContext
-from core.config import ConfigError
-from core.messages import DialogueStep, GestureStep
-from core.spec import MOSHI_SPEC, SpecMismatchError
+from ecas.core.component import RunContext
+from ecas.core.config import ConfigError
+from ecas.core.messages import DialogueStep, GestureStep
+from ecas.core.spec import MOSHI_SPEC, SpecMismatchError
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
 from gesture.config import GestureConfig
@@ -34,14 +34,27 @@ def checkpoints(tmp_path_factory):
 
 
 def _config(root, spec=TINY_SPEC, **kw):
-    return GestureConfig(lm_checkpoint=root / "lm", codec_checkpoints=root / "codecs", dtype="float32",
-                         warmup_steps=2, dialogue_spec=spec, **kw)
+    return GestureConfig(
+        lm_checkpoint=root / "lm",
+        codec_checkpoints=root / "codecs",
+        dtype="float32",
+        warmup_steps=2,
+        dialogue_spec=spec,
+        **kw,
+    )
 
 
 def _dialogue_step(session, step, text=3):
-    return DialogueStep(session=session, step=step, text_token=text, text_piece="hi",
-                        agent_codes=np.arange(8, dtype=np.int32) % 12, agent_pcm=np.zeros(1920, np.float32),
-                        user_pcm=np.zeros(1920, np.float32), user_codes=np.full(8, -1, np.int32))
+    return DialogueStep(
+        session=session,
+        step=step,
+        text_token=text,
+        text_piece="hi",
+        agent_codes=np.arange(8, dtype=np.int32) % 12,
+        agent_pcm=np.zeros(1920, np.float32),
+        user_pcm=np.zeros(1920, np.float32),
+        user_codes=np.full(8, -1, np.int32),
+    )
 
 
 def test_dialogue_steps_become_gesture_steps_and_sessions_reset(checkpoints, tmp_path):
@@ -98,4 +111,5 @@ def test_gesture_config_validates_options():
         GestureConfig(hold_levels=(-1,))
     with pytest.raises(ConfigError, match="gesture.idle.slices_dir"):
         from gesture.config import IdleGateConfig
+
         IdleGateConfig(enabled=True)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from ecas.core.paths import DEFAULT_CONFIG
 from gesture.eval import hold_bias
-from gesture.eval.suite import REPO
 
 
 def test_repeat_rates_count_steps_whose_code_equals_the_previous_one_per_level():
@@ -31,12 +31,14 @@ def test_cli_refuses_bad_options_by_name(capsys):
 
 
 def test_a_larger_bias_repeats_more_often_on_a_validation_session(tmp_path):
-    report = hold_bias.measure(REPO / "configs" / "default.yaml", [0.0, 3.0], tmp_path / "validation", 1, 6.0,
-                               seed=0, progress=lambda msg: None)
+    report = hold_bias.measure(
+        DEFAULT_CONFIG, [0.0, 3.0], tmp_path / "validation", 1, 6.0, seed=0, progress=lambda msg: None
+    )
     assert report["sessions"] == ["31_synth_0_1_1"] and report["seconds"] == pytest.approx(6.0)
     level0 = {b: rates[0] for b, rates in report["by_bias"].items()}
     assert level0["3.0"] > level0["0.0"] + 0.2
     assert 0 < report["tokens"][0] < 1 and report["closest"] in (0.0, 3.0)
     with pytest.raises(ValueError, match="levels: must be token levels"):
-        hold_bias.measure(REPO / "configs" / "default.yaml", [0.0], tmp_path / "validation", 1, 12.0, seed=0,
-                          levels=[99], progress=lambda msg: None)
+        hold_bias.measure(
+            DEFAULT_CONFIG, [0.0], tmp_path / "validation", 1, 12.0, seed=0, levels=[99], progress=lambda msg: None
+        )

@@ -5,8 +5,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from core.config import ConfigError
-from core.spec import MOSHI_SPEC, ConditionSpec, SpecMismatchError
+from ecas.core.config import ConfigError
+from ecas.core.spec import MOSHI_SPEC, ConditionSpec, SpecMismatchError
 from gesture.lm.checkpoint import load_lm, save_lm
 from gesture.lm.config import LMConfig
 from gesture.lm.fixtures import TINY_SPEC, tiny_lm
@@ -40,8 +40,10 @@ def test_reference_size_state_dict_matches_official_keys(face_logits, tsv):
     ours = {k: tuple(v.shape) for k, v in model.state_dict().items()}
     ref = _read_tsv(tsv)
     assert set(ours) == set(ref)
-    vocab_dependent = {"text_procemb.weight": (32001, 4096), **{f"audio_procemb.{i}.weight": (2049, 4096)
-                                                                for i in range(8)}}
+    vocab_dependent = {
+        "text_procemb.weight": (32001, 4096),
+        **{f"audio_procemb.{i}.weight": (2049, 4096) for i in range(8)},
+    }
     for key, shape in ref.items():
         if key in vocab_dependent:
             assert shape == vocab_dependent[key]
@@ -62,8 +64,11 @@ def test_projected_condition_tables_equal_lookup_then_linear():
     model = tiny_lm()
     stepper = LMStepper(model, guided=False)
     d = model.sizes.d_model
-    for text, audio in ((5, torch.tensor([0, 1, 2, 3, 4, 5, 6, 11])), (-1, torch.tensor([-1, 2, -1, 3, 0, -1, 1, 1])),
-                        (-1, torch.full((8,), -1))):
+    for text, audio in (
+        (5, torch.tensor([0, 1, 2, 3, 4, 5, 6, 11])),
+        (-1, torch.tensor([-1, 2, -1, 3, 0, -1, 1, 1])),
+        (-1, torch.full((8,), -1)),
+    ):
         audio_sum, text_emb = model.condition_embeddings(torch.tensor([[text]]), audio.view(1, 8, 1))
         memories = stepper.condition_memories(text, audio)  # (2, 2d)
         with torch.no_grad():
@@ -139,4 +144,3 @@ def test_lm_config_rejects_bad_sizes():
         LMConfig(d_model=30, temporal_heads=4)
     with pytest.raises(ConfigError, match="lm.n_upper"):
         LMConfig(n_upper=0)
-

@@ -123,8 +123,10 @@ def test_guided_logits_equal_guidance_of_the_rows(dtype, tolerance, kernels):
     with torch.inference_mode():
         for t in range(8):
             history = tokens[:, t - 1] if t else torch.full((model.sizes.n_levels,), -1)
-            check(rows_engine.begin_step(history, int(text[t]), audio[:, t]),
-                  guided_engine.begin_step(history, int(text[t]), audio[:, t], 3.0))
+            check(
+                rows_engine.begin_step(history, int(text[t]), audio[:, t]),
+                guided_engine.begin_step(history, int(text[t]), audio[:, t], 3.0),
+            )
             for k in range(model.sizes.n_depth):
                 rows = rows_engine.depth_logits(k, int(tokens[k, t]))
                 check(rows, guided_engine.depth_logits(k, int(tokens[k, t]), 3.0))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
 from gesture.lm.config import LMFileConfig, LMTrainConfig
 from gesture.lm.data import LMDataset, write_recording, write_spec
 from gesture.lm.fixtures import TINY_SPEC, tiny_lm_config
@@ -77,16 +77,32 @@ def _dataset(tmp_path, steps=60, n=3, spec=TINY_SPEC):
     for i in range(n):  # a learnable pattern: tokens repeat with period 6, conditioned on the text token
         tokens = np.tile(base, steps // 6)
         text = np.tile(np.arange(6), steps // 6)
-        write_recording(data / f"r{i}.npz", tokens, text, rng.integers(0, spec.audio_card, (8, steps)),
-                        (text % 2).astype(np.uint8), speaker=i)
+        write_recording(
+            data / f"r{i}.npz",
+            tokens,
+            text,
+            rng.integers(0, spec.audio_card, (8, steps)),
+            (text % 2).astype(np.uint8),
+            speaker=i,
+        )
     return data
 
 
 def _tiny_file_config(**train):
-    base = dict(batch_size=4, window_steps=24, epochs=4, steps_per_epoch=5, warmup_epochs=1, cond_drop_end_epoch=2,
-                pad_start_epoch=2, pad_full_epoch=3, tau_epochs=1, lr=3e-3, checkpoint_every_epochs=2)
-    return LMFileConfig(lm=tiny_lm_config(), condition=TINY_SPEC,
-                        train=LMTrainConfig(**{**base, **train}))
+    base = dict(
+        batch_size=4,
+        window_steps=24,
+        epochs=4,
+        steps_per_epoch=5,
+        warmup_epochs=1,
+        cond_drop_end_epoch=2,
+        pad_start_epoch=2,
+        pad_full_epoch=3,
+        tau_epochs=1,
+        lr=3e-3,
+        checkpoint_every_epochs=2,
+    )
+    return LMFileConfig(lm=tiny_lm_config(), condition=TINY_SPEC, train=LMTrainConfig(**{**base, **train}))
 
 
 def test_short_training_learns_and_resumes(tmp_path):
@@ -102,7 +118,8 @@ def test_short_training_learns_and_resumes(tmp_path):
 
 
 def test_dataset_rejects_a_foreign_spec_and_bad_files(tmp_path):
-    from core.spec import MOSHI_SPEC, SpecMismatchError
+    from ecas.core.spec import MOSHI_SPEC, SpecMismatchError
+
     data = _dataset(tmp_path)
     with pytest.raises(SpecMismatchError):
         LMDataset(data, 20, MOSHI_SPEC)
@@ -118,15 +135,31 @@ def test_train_config_rejects_bad_values():
 
 @pytest.mark.slow
 def test_cli_trains_the_small_config(tmp_path):
-    from core.spec import ConditionSpec
+    from ecas.core.spec import ConditionSpec
+
     data = _dataset(tmp_path, steps=120, spec=ConditionSpec("local-v1", 8192, 256, 256))
-    main(["--config", "configs/lm/small.yaml", "--data", str(data), "--out", str(tmp_path / "out"),
-          "--epochs", "2", "--no-progress"])
+    main(
+        [
+            "--config",
+            "ecas/configs/lm/small.yaml",
+            "--data",
+            str(data),
+            "--out",
+            str(tmp_path / "out"),
+            "--epochs",
+            "2",
+            "--no-progress",
+        ]
+    )
     assert (tmp_path / "out" / "loss_curve.png").exists()
 
 
 def test_zero_infonce_weight_leaves_the_term_out(tmp_path):
-    history = train(_tiny_file_config(epochs=1, infonce_weight=0.0, va_weight=0.2), _dataset(tmp_path),
-                    tmp_path / "out", progress=False)
+    history = train(
+        _tiny_file_config(epochs=1, infonce_weight=0.0, va_weight=0.2),
+        _dataset(tmp_path),
+        tmp_path / "out",
+        progress=False,
+    )
     assert "infonce" not in history[0]
     assert history[0]["total"] == pytest.approx(history[0]["ce"] + 0.2 * history[0]["va"], rel=1e-5)

@@ -8,8 +8,8 @@ import torch
 
 from gesture.eval import metrics as M
 from gesture.eval.evaluate import main as evaluate_main
-from gesture.eval.scores import evaluate_motion
 from gesture.eval.fgd import KineticGeometricEncoder, frechet_distance
+from gesture.eval.scores import evaluate_motion
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, MEAN_VEL_NPY, needs_clip
 
 torch.set_num_threads(1)
@@ -76,8 +76,9 @@ def test_reference_beats_come_from_the_joints_as_l1div_leaves_them():
     joints = np.zeros((n, 55, 3))
     joints[:, 20, 0] = np.arange(n) / 128  # 1/128 m a frame (exact in float32): the mean is frame 200's position
     mean_speed = np.full(55, 30 / 128)  # the wrist's speed: 1 in normalised units
-    np.testing.assert_array_equal(M.joints_as_left_by_l1div(joints)[[0, 199, 200, 201, 400], 20, 0],
-                                  np.array([200, 1, 0, 1, 200]) / 128)
+    np.testing.assert_array_equal(
+        M.joints_as_left_by_l1div(joints)[[0, 199, 200, 201, 400], 20, 0], np.array([200, 1, 0, 1, 200]) / 128
+    )
     reference = M.motion_beat_frames(joints, mean_speed, fps, trim, reference_quirk=True)
     np.testing.assert_array_equal(reference[20], [200 - trim])
     assert all(len(b) == 0 for b in M.motion_beat_frames(joints, mean_speed, fps, trim, reference_quirk=False))

@@ -10,15 +10,16 @@ import pytest
 import soundfile as sf
 
 from gesture.eval.evaluate import main
-from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
+from tests.data.beat2_clip import CLIP_NPZ, needs_clip
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _evaluate(*args) -> subprocess.CompletedProcess:
     """The command itself, in a fresh interpreter."""
-    return subprocess.run([sys.executable, "-m", "gesture.evaluate", *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "gesture.evaluate", *map(str, args)], cwd=REPO, capture_output=True, text=True
+    )
 
 
 def _evaluate_here(capsys, *args) -> subprocess.CompletedProcess:
@@ -71,8 +72,9 @@ def test_nan_wav_gives_one_line_and_exit_2(tmp_path, capsys):
     samples = np.zeros(16000, np.float32)
     samples[100] = np.nan
     sf.write(wav, samples, 16000, subtype="FLOAT")
-    _assert_one_line_exit_2(_evaluate_here(capsys, "--motion", CLIP_NPZ, "--gt", CLIP_NPZ, "--wav", wav), str(wav),
-                            "NaN")
+    _assert_one_line_exit_2(
+        _evaluate_here(capsys, "--motion", CLIP_NPZ, "--gt", CLIP_NPZ, "--wav", wav), str(wav), "NaN"
+    )
 
 
 @needs_clip
@@ -82,5 +84,6 @@ def test_text_file_as_wav_and_as_body_give_one_line_and_exit_2(tmp_path):
     _assert_one_line_exit_2(_evaluate("--motion", CLIP_NPZ, "--gt", CLIP_NPZ, "--wav", text), "cannot decode audio")
     body = tmp_path / "body.npz"
     body.write_text("not a body\n")
-    _assert_one_line_exit_2(_evaluate("--motion", CLIP_NPZ, "--gt", CLIP_NPZ, "--smplx-model", body),
-                            "cannot read SMPL-X model")
+    _assert_one_line_exit_2(
+        _evaluate("--motion", CLIP_NPZ, "--gt", CLIP_NPZ, "--smplx-model", body), "cannot read SMPL-X model"
+    )

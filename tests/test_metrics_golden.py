@@ -20,8 +20,10 @@ REPO = Path(__file__).resolve().parents[1]
 GOLDEN = REPO.parent / "shared" / "reference" / "metrics_golden"
 GT_NPZ = GOLDEN / "gt_25fps.npz"
 BODY_NPZ = GOLDEN / "SMPLX_PROCEDURAL.npz"
-needs_golden = pytest.mark.skipif(not (GOLDEN / "expected_gt_vs_gt.json").is_file() or not CLIP_WAV.is_file(),
-                                  reason=f"reference metric outputs not found at {GOLDEN}")
+needs_golden = pytest.mark.skipif(
+    not (GOLDEN / "expected_gt_vs_gt.json").is_file() or not CLIP_WAV.is_file(),
+    reason=f"reference metric outputs not found at {GOLDEN}",
+)
 
 
 @pytest.fixture(scope="module")
@@ -37,9 +39,28 @@ def joints():
 
 @needs_golden
 def test_cli_gives_the_reference_l1div_mpjpe_and_frames(expected):
-    proc = subprocess.run([sys.executable, "-m", "gesture.evaluate", "--motion", str(GT_NPZ), "--gt", str(GT_NPZ),
-                           "--wav", str(CLIP_WAV), "--mean-vel", str(MEAN_VEL_NPY), "--smplx-model", str(BODY_NPZ),
-                           "--json"], cwd=REPO, capture_output=True, text=True, check=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gesture.evaluate",
+            "--motion",
+            str(GT_NPZ),
+            "--gt",
+            str(GT_NPZ),
+            "--wav",
+            str(CLIP_WAV),
+            "--mean-vel",
+            str(MEAN_VEL_NPY),
+            "--smplx-model",
+            str(BODY_NPZ),
+            "--json",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     got, want = json.loads(proc.stdout), expected["metrics"]
     assert got["frames_30fps"] == want["n_frames_30fps"]
     assert got["l1div"] == pytest.approx(want["l1div_pred"], rel=1e-5)
@@ -54,8 +75,9 @@ def test_joints_match_the_reference_body_forward(expected, joints):
     assert list(joints.shape) == inter["joints_rec_30fps_shape"]
     np.testing.assert_allclose(joints[100].reshape(-1), inter["joints_rec_30fps_frame100"], rtol=0, atol=2e-6)
     assert np.abs(joints.astype(np.float64)).sum() == pytest.approx(inter["joints_rec_30fps_sum_abs"], rel=1e-6)
-    np.testing.assert_allclose(joints.reshape(-1, 3).astype(np.float64).mean(0), inter["joints_rec_30fps_mean_xyz"],
-                               rtol=0, atol=1e-6)
+    np.testing.assert_allclose(
+        joints.reshape(-1, 3).astype(np.float64).mean(0), inter["joints_rec_30fps_mean_xyz"], rtol=0, atol=1e-6
+    )
 
 
 @needs_golden
@@ -80,8 +102,10 @@ def test_reference_beat_frames_and_stored_onsets_give_the_reference_beat_align(e
 
 def _reference_speed(joints):
     """The normalised speed the reference takes its beats from: that of the joints as its L1div leaves them."""
-    return (M.joint_speeds(M.joints_as_left_by_l1div(joints), M.METRIC_FPS)
-            / M.load_mean_speed(MEAN_VEL_NPY)[None, : joints.shape[1]])
+    return (
+        M.joint_speeds(M.joints_as_left_by_l1div(joints), M.METRIC_FPS)
+        / M.load_mean_speed(MEAN_VEL_NPY)[None, : joints.shape[1]]
+    )
 
 
 @needs_golden
@@ -122,8 +146,9 @@ def gt_scores_on_the_stored_onsets(expected) -> dict:
     """The GT clip scored against itself with the reference's own audio onsets, so only our beat frames differ."""
     gt = M.load_motion_clip(GT_NPZ)
     onsets = np.array(expected["intermediates"]["onsets"])
-    return evaluate_motion(gt, gt, None, M.load_mean_speed(MEAN_VEL_NPY), M.SmplxBody(BODY_NPZ), encoders=(),
-                           onsets_s=onsets)
+    return evaluate_motion(
+        gt, gt, None, M.load_mean_speed(MEAN_VEL_NPY), M.SmplxBody(BODY_NPZ), encoders=(), onsets_s=onsets
+    )
 
 
 @needs_golden
@@ -134,16 +159,20 @@ def test_beat_align_on_the_stored_onsets_is_within_the_near_ties_of_the_referenc
 
 
 @needs_golden
-@pytest.mark.xfail(strict=True, reason="7 of the reference's 5024 beat frames are near-ties (speeds within 0.3 %) "
-                   "that our joints, ~1 µm from the reference's, decide the other way; see docs/metrics.md")
+@pytest.mark.xfail(
+    strict=True,
+    reason="7 of the reference's 5024 beat frames are near-ties (speeds within 0.3 %) "
+    "that our joints, ~1 µm from the reference's, decide the other way; see docs/metrics.md",
+)
 def test_motion_beats_of_every_joint_equal_the_reference(expected, joints):
     beats = M.motion_beat_frames(joints, M.load_mean_speed(MEAN_VEL_NPY))
     assert [b.tolist() for b in beats] == expected["intermediates"]["beats_gt"]
 
 
 @needs_golden
-@pytest.mark.xfail(strict=True, reason="follows from the near-tie beat frames above (ours 0.736821, the "
-                   "reference 0.736527)")
+@pytest.mark.xfail(
+    strict=True, reason="follows from the near-tie beat frames above (ours 0.736821, the reference 0.736527)"
+)
 def test_beat_align_on_the_stored_onsets_equals_the_reference(expected):
     got = gt_scores_on_the_stored_onsets(expected)
     assert got["beat_align"] == pytest.approx(expected["metrics"]["beat_align_pred"], abs=1e-6)

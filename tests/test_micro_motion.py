@@ -6,14 +6,23 @@ import pytest
 import torch
 from scipy.signal import sosfilt
 
-from core.config import ConfigError
-from core.timing import MOTION_FPS
+from ecas.core.config import ConfigError
+from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle_np
 from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.micro_motion import (COLLARS, HEAD_DRIFT_JOINTS, SPEAKING_RMS, CausalSmoothNoise, HeadDrift, LowpassNoise,
-                                  VoiceEnvelope, calibrated_micro_motion, frame_rms)
+from gesture.micro_motion import (
+    COLLARS,
+    HEAD_DRIFT_JOINTS,
+    SPEAKING_RMS,
+    CausalSmoothNoise,
+    HeadDrift,
+    LowpassNoise,
+    VoiceEnvelope,
+    calibrated_micro_motion,
+    frame_rms,
+)
 from gesture.process import build_micro_motion
 from gesture.synth import agent
 from gesture.synth.agent import MICRO_ENVELOPE_GAIN, micro_motion
@@ -34,7 +43,7 @@ def _rest_poses(frames: int) -> np.ndarray:
 def _moved(layer, poses: np.ndarray, speaking: bool = True) -> np.ndarray:
     """The layer run step by step (2 frames each) on speech or silence."""
     pcm = STEP_PCM if speaking else np.zeros_like(STEP_PCM)
-    return np.concatenate([layer.step(poses[i:i + 2], pcm) for i in range(0, len(poses), 2)])
+    return np.concatenate([layer.step(poses[i : i + 2], pcm) for i in range(0, len(poses), 2)])
 
 
 def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
@@ -44,7 +53,7 @@ def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
     causal = np.stack([noise.step(w) for w in rng.standard_normal((60_000, 2))])  # (T, 2)
     gaussian = np.concatenate([smooth_noise(rng, 6_000, MOTION_FPS, hz, 1) for hz in (0.5, 1.2)], 1)  # its model
     np.testing.assert_allclose(causal.std(0), 1.0, rtol=0.05)
-    speed = lambda x: np.abs(np.diff(x, axis=0)).mean(0)  # noqa: E731
+    speed = lambda x: np.abs(np.diff(x, axis=0)).mean(0)
     np.testing.assert_allclose(speed(causal), speed(gaussian), rtol=0.1)
 
 
@@ -54,8 +63,9 @@ def test_lowpass_noise_runs_the_datas_filter_one_frame_at_a_time():
     noise = LowpassNoise(cutoffs, MOTION_FPS)  # zero state: exactly scipy's filter of the same white noise
     streamed = np.stack([noise.step(w) for w in white])  # (T, 2)
     for k, hz in enumerate(cutoffs):
-        np.testing.assert_allclose(streamed[:, k] * noise.gain[k], sosfilt(lowpass_sos(hz, MOTION_FPS), white[:, k]),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            streamed[:, k] * noise.gain[k], sosfilt(lowpass_sos(hz, MOTION_FPS), white[:, k]), atol=1e-12
+        )
     rng = np.random.default_rng(1)
     per_cutoff = 4000
     many = LowpassNoise(np.repeat(cutoffs, per_cutoff), MOTION_FPS)
@@ -67,7 +77,7 @@ def test_lowpass_noise_runs_the_datas_filter_one_frame_at_a_time():
     causal = causal.reshape(len(causal), 2, per_cutoff)  # (T, cutoff, run)
     data = np.stack([lowpass_noise(rng, len(causal), MOTION_FPS, hz, per_cutoff) for hz in cutoffs], 1)  # likewise
     np.testing.assert_allclose(causal.std((0, 2)), 1.0, rtol=0.05)
-    speed = lambda x: np.abs(np.diff(x, axis=0)).mean((0, 2))  # noqa: E731
+    speed = lambda x: np.abs(np.diff(x, axis=0)).mean((0, 2))
     np.testing.assert_allclose(speed(causal), speed(data), rtol=0.05)
 
 
@@ -78,7 +88,7 @@ def test_streaming_in_steps_equals_one_call_and_reset_replays(joints):
     pcm = np.concatenate([STEP_PCM * (k % 3) for k in range(20)])  # speech and silence
     whole = layer.step(poses, pcm)
     layer.reset()
-    steps = np.concatenate([layer.step(poses[i:i + 2], pcm[960 * i:960 * (i + 2)]) for i in range(0, 40, 2)])
+    steps = np.concatenate([layer.step(poses[i : i + 2], pcm[960 * i : 960 * (i + 2)]) for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
     other = _moved(calibrated_micro_motion(joints, MOTION_FPS, seed=4), poses)
     assert not np.array_equal(whole, other)
@@ -89,8 +99,9 @@ def test_only_the_chosen_joints_move_and_by_their_fitted_size():
     moved = _moved(calibrated_micro_motion(JOINTS, MOTION_FPS, seed=0), poses)
     untouched = [j for j in range(55) if j not in JOINTS]
     np.testing.assert_array_equal(moved[:, untouched], poses[:, untouched])
-    angles = geodesic_angle(axis_angle_to_matrix(torch.from_numpy(moved[:, list(JOINTS)])),
-                            torch.eye(3).expand(2000, len(JOINTS), 3, 3)).numpy()  # (T, J) from rest
+    angles = geodesic_angle(
+        axis_angle_to_matrix(torch.from_numpy(moved[:, list(JOINTS)])), torch.eye(3).expand(2000, len(JOINTS), 3, 3)
+    ).numpy()  # (T, J) from rest
     assert np.all(angles.std(0) > 0.01) and np.all(angles.max(0) < 2.0)
 
 
@@ -124,8 +135,9 @@ def test_generator_applies_the_layer_after_decoding():
     conditions = [(5, np.arange(8) % 12)] * 6
     pcm = np.full(1920, 0.05, np.float32)
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
-    layered = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1,
-                               micro_motion=calibrated_micro_motion(JOINTS, MOTION_FPS, seed=1))
+    layered = GestureGenerator(
+        tiny_lm(), tiny_codecs(), seed=1, micro_motion=calibrated_micro_motion(JOINTS, MOTION_FPS, seed=1)
+    )
     for text, audio in conditions:
         a, b = plain.step(text, audio, pcm), layered.step(text, audio, pcm)
         np.testing.assert_array_equal(a.tokens, b.tokens)
@@ -151,7 +163,7 @@ def test_wrists_hold_still_as_often_as_the_datas(monkeypatch):
     frames, wrists = 20_000, (20, 21)
     layer = calibrated_micro_motion(wrists, MOTION_FPS, seed=0)
     rms = float(np.sqrt(np.mean(STEP_PCM**2)))
-    runtime = np.stack([layer.offsets(rms) for _ in range(frames)])[MOTION_FPS * 10:]  # (T, 2, 3) after the warm-up
+    runtime = np.stack([layer.offsets(rms) for _ in range(frames)])[MOTION_FPS * 10 :]  # (T, 2, 3) after the warm-up
     fitted = load_calibration().micro_motion
     level = np.full(frames, 1 + MICRO_ENVELOPE_GAIN * 0.5)  # speaking, at the loud level
 
@@ -180,7 +192,7 @@ def test_head_drift_streams_in_steps_as_in_one_call_and_reset_replays():
     layer = _drifting()
     whole = layer.step(poses, pcm)
     layer.reset()
-    steps = np.concatenate([layer.step(poses[i:i + 2], pcm[960 * i:960 * (i + 2)]) for i in range(0, 40, 2)])
+    steps = np.concatenate([layer.step(poses[i : i + 2], pcm[960 * i : 960 * (i + 2)]) for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
 
 

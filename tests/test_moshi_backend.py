@@ -9,37 +9,86 @@ import torch
 pytest.importorskip("moshi")
 pytest.importorskip("sentencepiece")
 
-from core.config import build_dataclass  # noqa: E402
-from core.messages import AudioUser, DialogueStep  # noqa: E402
-from core.spec import MOSHI_SPEC  # noqa: E402
-from core.component import RunContext  # noqa: E402
-from core.timing import STEP_SAMPLES  # noqa: E402
-from dialogue.config import DialogueConfig  # noqa: E402
-from dialogue.moshi_backend import MoshiWeightsError, moshi_spec  # noqa: E402
-from dialogue.process import create_component  # noqa: E402
+from dialogue.config import DialogueConfig
+from dialogue.moshi_backend import MoshiWeightsError, moshi_spec
+from dialogue.process import create_component
+from ecas.core.component import RunContext
+from ecas.core.config import build_dataclass
+from ecas.core.messages import AudioUser, DialogueStep
+from ecas.core.spec import MOSHI_SPEC
+from ecas.core.timing import STEP_SAMPLES
 
 TINY_CARD = 64
 TINY_TEXT_CARD = 64
 TINY_MIMI = {
-    "sample_rate": 24000, "channels": 1, "frame_rate": 12.5,
-    "seanet": {"channels": 1, "dimension": 32, "causal": True, "n_filters": 4, "n_residual_layers": 1,
-               "activation": "ELU", "compress": 2, "dilation_base": 2, "disable_norm_outer_blocks": 0,
-               "kernel_size": 7, "residual_kernel_size": 3, "last_kernel_size": 3, "norm": "none",
-               "pad_mode": "constant", "ratios": [8, 6, 5, 4], "true_skip": True},
+    "sample_rate": 24000,
+    "channels": 1,
+    "frame_rate": 12.5,
+    "seanet": {
+        "channels": 1,
+        "dimension": 32,
+        "causal": True,
+        "n_filters": 4,
+        "n_residual_layers": 1,
+        "activation": "ELU",
+        "compress": 2,
+        "dilation_base": 2,
+        "disable_norm_outer_blocks": 0,
+        "kernel_size": 7,
+        "residual_kernel_size": 3,
+        "last_kernel_size": 3,
+        "norm": "none",
+        "pad_mode": "constant",
+        "ratios": [8, 6, 5, 4],
+        "true_skip": True,
+    },
     "quantizer": {"dimension": 16, "n_q": 8, "bins": TINY_CARD, "input_dimension": 32, "output_dimension": 32},
-    "transformer": {"d_model": 32, "num_heads": 2, "num_layers": 1, "causal": True, "layer_scale": 0.01,
-                    "context": 25, "conv_layout": True, "max_period": 10000, "gating": "none",
-                    "norm": "layer_norm", "positional_embedding": "rope", "dim_feedforward": 64,
-                    "input_dimension": 32, "output_dimensions": [32]},
+    "transformer": {
+        "d_model": 32,
+        "num_heads": 2,
+        "num_layers": 1,
+        "causal": True,
+        "layer_scale": 0.01,
+        "context": 25,
+        "conv_layout": True,
+        "max_period": 10000,
+        "gating": "none",
+        "norm": "layer_norm",
+        "positional_embedding": "rope",
+        "dim_feedforward": 64,
+        "input_dimension": 32,
+        "output_dimensions": [32],
+    },
 }
 TINY_LM = {
-    "dim": 32, "text_card": TINY_TEXT_CARD, "existing_text_padding_id": 3, "n_q": 16, "dep_q": 8, "card": TINY_CARD,
-    "num_heads": 2, "num_layers": 1, "hidden_scale": 2.0, "causal": True, "layer_scale": None, "context": 50,
-    "max_period": 10000, "gating": "silu", "norm": "rms_norm_f32", "positional_embedding": "rope",
-    "depformer_dim": 32, "depformer_dim_feedforward": 64, "depformer_num_heads": 2, "depformer_num_layers": 1,
-    "depformer_layer_scale": None, "depformer_multi_linear": True, "depformer_context": 8,
-    "depformer_max_period": 10000, "depformer_gating": "silu", "depformer_pos_emb": "none",
-    "depformer_weights_per_step": True, "delays": [0, 0, 1, 1, 1, 1, 1, 1, 1, 0, 1, 1, 1, 1, 1, 1, 1],
+    "dim": 32,
+    "text_card": TINY_TEXT_CARD,
+    "existing_text_padding_id": 3,
+    "n_q": 16,
+    "dep_q": 8,
+    "card": TINY_CARD,
+    "num_heads": 2,
+    "num_layers": 1,
+    "hidden_scale": 2.0,
+    "causal": True,
+    "layer_scale": None,
+    "context": 50,
+    "max_period": 10000,
+    "gating": "silu",
+    "norm": "rms_norm_f32",
+    "positional_embedding": "rope",
+    "depformer_dim": 32,
+    "depformer_dim_feedforward": 64,
+    "depformer_num_heads": 2,
+    "depformer_num_layers": 1,
+    "depformer_layer_scale": None,
+    "depformer_multi_linear": True,
+    "depformer_context": 8,
+    "depformer_max_period": 10000,
+    "depformer_gating": "silu",
+    "depformer_pos_emb": "none",
+    "depformer_weights_per_step": True,
+    "delays": [0, 0, 1, 1, 1, 1, 1, 1, 1, 0, 1, 1, 1, 1, 1, 1, 1],
 }
 
 
@@ -59,18 +108,38 @@ def tiny_moshi_files(tmp_path_factory):
     (root / "mimi.json").write_text(json.dumps(TINY_MIMI))
     (root / "lm.json").write_text(json.dumps(TINY_LM))
     corpus = root / "corpus.txt"
-    corpus.write_text("\n".join(["hello there how are you today", "i am fine thank you very much",
-                                 "the weather is nice and warm", "what would you like to talk about"] * 20))
-    sentencepiece.SentencePieceTrainer.train(input=str(corpus), model_prefix=str(root / "spm"),
-                                             vocab_size=TINY_TEXT_CARD, model_type="unigram",
-                                             hard_vocab_limit=False, minloglevel=2)
+    corpus.write_text(
+        "\n".join(
+            [
+                "hello there how are you today",
+                "i am fine thank you very much",
+                "the weather is nice and warm",
+                "what would you like to talk about",
+            ]
+            * 20
+        )
+    )
+    sentencepiece.SentencePieceTrainer.train(
+        input=str(corpus),
+        model_prefix=str(root / "spm"),
+        vocab_size=TINY_TEXT_CARD,
+        model_type="unigram",
+        hard_vocab_limit=False,
+        minloglevel=2,
+    )
     return root
 
 
 def _moshi_cfg(root, **overrides) -> DialogueConfig:
-    moshi = {"lm_weights": str(root / "model.safetensors"), "mimi_weights": str(root / "mimi.safetensors"),
-             "tokenizer": str(root / "spm.model"), "lm_config": str(root / "lm.json"),
-             "mimi_config": str(root / "mimi.json"), "temp": 0.8, "temp_text": 0.7}
+    moshi = {
+        "lm_weights": str(root / "model.safetensors"),
+        "mimi_weights": str(root / "mimi.safetensors"),
+        "tokenizer": str(root / "spm.model"),
+        "lm_config": str(root / "lm.json"),
+        "mimi_config": str(root / "mimi.json"),
+        "temp": 0.8,
+        "temp_text": 0.7,
+    }
     moshi.update(overrides)
     return build_dataclass(DialogueConfig, {"backend": "moshi", "moshi": moshi}, "dialogue")
 
@@ -102,8 +171,9 @@ def test_tiny_moshi_runs_through_the_dialogue_component(tiny_moshi_files, tmp_pa
 
 
 def test_classifier_free_guidance_from_config(tiny_moshi_files, tmp_path):
-    component = create_component(_moshi_cfg(tiny_moshi_files, cfg_coef=2.0, temp=0.0, temp_text=0.0),
-                                 RunContext(tmp_path, False, 0, "s"))
+    component = create_component(
+        _moshi_cfg(tiny_moshi_files, cfg_coef=2.0, temp=0.0, temp_text=0.0), RunContext(tmp_path, False, 0, "s")
+    )
     assert component.backend.lm_gen.cfg_coef == 2.0 and component.backend.lm_gen.temp == 0.0
     outs = [component.handle(AudioUser(pcm=np.zeros(STEP_SAMPLES, np.float32), step=i))[0] for i in range(4)]
     component.close()
@@ -121,11 +191,18 @@ def test_released_sizes_give_moshi_spec():
 
 
 def test_missing_weights_name_the_expected_files(tmp_path):
-    cfg = build_dataclass(DialogueConfig, {"backend": "moshi", "moshi": {"lm_weights": str(tmp_path / "nope")}},
-                          "dialogue")
+    cfg = build_dataclass(
+        DialogueConfig, {"backend": "moshi", "moshi": {"lm_weights": str(tmp_path / "nope")}}, "dialogue"
+    )
     with pytest.raises(MoshiWeightsError) as err:
         create_component(cfg, RunContext(tmp_path, False, 0, "s"))
     message = str(err.value)
-    for expected in ("model.safetensors", "tokenizer-e351c8d8-checkpoint125.safetensors", "tokenizer_spm_32k_3.model",
-                     "dialogue.moshi.lm_weights", "dialogue.moshi.mimi_weights", "dialogue.moshi.tokenizer"):
+    for expected in (
+        "model.safetensors",
+        "tokenizer-e351c8d8-checkpoint125.safetensors",
+        "tokenizer_spm_32k_3.model",
+        "dialogue.moshi.lm_weights",
+        "dialogue.moshi.mimi_weights",
+        "dialogue.moshi.tokenizer",
+    ):
         assert expected in message

@@ -5,13 +5,21 @@ import numpy as np
 import pytest
 import torch
 
-from core.messages import DialogueStep, GestureStep
-from core.component import RunContext
-from core.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
+from ecas.core.component import RunContext
+from ecas.core.messages import DialogueStep, GestureStep
+from ecas.core.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
 from render.config import RenderConfig
 from render.mp4 import BackgroundMp4Writer, Mp4Error, Mp4Writer
-from render.testing import (BEAT2_NPZ, BEAT2_WAV, check_av_sync, decode, needs_beat2, needs_osmesa, silhouette,
-                            silhouette_center)
+from render.testing import (
+    BEAT2_NPZ,
+    BEAT2_WAV,
+    check_av_sync,
+    decode,
+    needs_beat2,
+    needs_osmesa,
+    silhouette,
+    silhouette_center,
+)
 
 torch.set_num_threads(1)
 
@@ -21,7 +29,7 @@ def test_writer_streams_lengths_and_content(tmp_path):
     tone = (0.5 * np.sin(2 * np.pi * 440 * np.arange(50 * FRAME_SAMPLES) / SAMPLE_RATE_HZ)).astype(np.float32)
     with Mp4Writer(path, 64, 48) as writer:
         for i in range(50):
-            writer.write(np.full((48, 64, 3), 5 * i, np.uint8), tone[i * FRAME_SAMPLES:(i + 1) * FRAME_SAMPLES])
+            writer.write(np.full((48, 64, 3), 5 * i, np.uint8), tone[i * FRAME_SAMPLES : (i + 1) * FRAME_SAMPLES])
     info = decode(path)
     check_av_sync(info, 50)
     assert info["audio_rate"] == SAMPLE_RATE_HZ and info["audio_channels"] == 1
@@ -34,10 +42,9 @@ def test_writer_streams_lengths_and_content(tmp_path):
 def test_error_or_interrupt_leaves_no_file(tmp_path):
     path = tmp_path / "out.mp4"
     for error in (RuntimeError("boom"), KeyboardInterrupt()):
-        with pytest.raises(type(error)):
-            with Mp4Writer(path, 64, 64) as writer:
-                writer.write(np.zeros((64, 64, 3), np.uint8), np.zeros(FRAME_SAMPLES, np.float32))
-                raise error
+        with pytest.raises(type(error)), Mp4Writer(path, 64, 64) as writer:
+            writer.write(np.zeros((64, 64, 3), np.uint8), np.zeros(FRAME_SAMPLES, np.float32))
+            raise error
         assert list(tmp_path.iterdir()) == []
 
 
@@ -85,8 +92,24 @@ def test_render_play_on_the_beat2_clip(tmp_path):
     from render.play import main
 
     out = tmp_path / "clip.mp4"
-    assert main([str(BEAT2_NPZ), "--wav", str(BEAT2_WAV), "--mp4", str(out), "--size", "128",
-                 "--start", "20", "--seconds", "2"]) == 0
+    assert (
+        main(
+            [
+                str(BEAT2_NPZ),
+                "--wav",
+                str(BEAT2_WAV),
+                "--mp4",
+                str(out),
+                "--size",
+                "128",
+                "--start",
+                "20",
+                "--seconds",
+                "2",
+            ]
+        )
+        == 0
+    )
     info = decode(out)
     check_av_sync(info, 50)
     assert np.abs(info["audio"]).max() > 0.05  # the speech is in the track
@@ -95,8 +118,10 @@ def test_render_play_on_the_beat2_clip(tmp_path):
         assert mask.mean() > 0.02
         cx, cy = silhouette_center(mask)
         assert abs(cx - 0.5) < 0.12 and 0.25 < cy < 0.7
-    diffs = [np.abs(a.astype(int) - b.astype(int)).max(axis=2).mean() for a, b in
-             zip(info["frames"][:-10:10], info["frames"][10::10])]
+    diffs = [
+        np.abs(a.astype(int) - b.astype(int)).max(axis=2).mean()
+        for a, b in zip(info["frames"][:-10:10], info["frames"][10::10])
+    ]
     assert min(diffs) > 0.05  # the avatar moves: frames 0.4 s apart differ
 
 
@@ -109,9 +134,16 @@ def _steps(n_steps: int):
         poses = np.zeros((2, 55, 3), np.float32)
         poses[:, 16, 2] = -0.3 * step
         trans = np.tile(np.float32([0.0, 1.3, 0.0]), (2, 1))
-        yield (DialogueStep(step=step, agent_pcm=agent, user_pcm=user),
-               GestureStep(step=step, poses=poses, trans=trans, expressions=np.zeros((2, 100), np.float32),
-                           tokens=np.zeros(20, np.int32)))
+        yield (
+            DialogueStep(step=step, agent_pcm=agent, user_pcm=user),
+            GestureStep(
+                step=step,
+                poses=poses,
+                trans=trans,
+                expressions=np.zeros((2, 100), np.float32),
+                tokens=np.zeros(20, np.int32),
+            ),
+        )
 
 
 @needs_osmesa

@@ -5,8 +5,15 @@ import math
 import pytest
 import torch
 
-from gesture.nn import (RingKVCache, RotaryEmbedding, StreamingConv1d, StreamingConvTranspose1d,
-                        StreamingTransformer, attention_mask, windowed_attention)
+from gesture.nn import (
+    RingKVCache,
+    RotaryEmbedding,
+    StreamingConv1d,
+    StreamingConvTranspose1d,
+    StreamingTransformer,
+    attention_mask,
+    windowed_attention,
+)
 
 torch.set_num_threads(1)
 
@@ -20,7 +27,9 @@ def test_rope_known_rotation_and_fp32_angles():
     torch.testing.assert_close(y.flatten(), expected, rtol=0, atol=1e-6)
     big = rope.rotate(x.to(torch.bfloat16), torch.tensor([100_000]))
     assert big.dtype == torch.bfloat16
-    torch.testing.assert_close(big.float().flatten()[:2], torch.tensor([math.cos(1e5), math.sin(1e5)]), atol=1e-2, rtol=0)
+    torch.testing.assert_close(
+        big.float().flatten()[:2], torch.tensor([math.cos(1e5), math.sin(1e5)]), atol=1e-2, rtol=0
+    )
 
 
 def test_rope_scores_depend_only_on_relative_position():
@@ -66,7 +75,7 @@ def test_fully_masked_rows_are_zero_not_nan():
 
 def _stream(module, x, chunk):
     with module.streaming(batch_size=x.shape[0]):
-        return torch.cat([module(x[..., i:i + chunk]) for i in range(0, x.shape[-1], chunk)], dim=-1)
+        return torch.cat([module(x[..., i : i + chunk]) for i in range(0, x.shape[-1], chunk)], dim=-1)
 
 
 @pytest.mark.parametrize("kernel,stride,dilation,chunk", [(7, 1, 1, 1), (3, 1, 2, 2), (4, 2, 1, 2), (4, 2, 1, 6)])
@@ -79,7 +88,7 @@ def test_streaming_conv_equals_offline_and_is_causal(kernel, stride, dilation, c
     torch.testing.assert_close(_stream(conv, x, chunk), offline, atol=1e-5, rtol=0)
     changed = x.clone()
     changed[..., 12:] = torch.randn(2, 3, 12)
-    torch.testing.assert_close(conv(changed)[..., :12 // stride], offline[..., :12 // stride], atol=0, rtol=0)
+    torch.testing.assert_close(conv(changed)[..., : 12 // stride], offline[..., : 12 // stride], atol=0, rtol=0)
 
 
 def test_streaming_conv_transpose_equals_offline():
@@ -104,8 +113,9 @@ def test_weight_norm_keys_and_fold_follows_loaded_weights():
     conv.load_state_dict(state)
     with torch.inference_mode():
         after = conv(x)
-    torch.testing.assert_close(after - state["conv.conv.bias"][:, None],
-                               2 * (before - state["conv.conv.bias"][:, None] / 2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(
+        after - state["conv.conv.bias"][:, None], 2 * (before - state["conv.conv.bias"][:, None] / 2), atol=1e-5, rtol=0
+    )
 
 
 def test_streaming_transformer_equals_offline_past_the_context_and_resets():
@@ -114,15 +124,15 @@ def test_streaming_transformer_equals_offline_past_the_context_and_resets():
     x = torch.randn(2, 13, 16)
     offline = model(x)
     with torch.no_grad(), model.streaming(batch_size=2):
-        first = torch.cat([model(x[:, t:t + 1]) for t in range(13)], dim=1)
+        first = torch.cat([model(x[:, t : t + 1]) for t in range(13)], dim=1)
         model.reset_streaming()
-        second = torch.cat([model(x[:, t:t + 1]) for t in range(13)], dim=1)
+        second = torch.cat([model(x[:, t : t + 1]) for t in range(13)], dim=1)
     torch.testing.assert_close(first, offline, atol=1e-5, rtol=0)
     torch.testing.assert_close(second, offline, atol=1e-5, rtol=0)
     # the window: steps more than `context` back have no influence
     changed = x.clone()
     changed[:, :3] = torch.randn(2, 3, 16)
-    torch.testing.assert_close(model(changed)[:, 3 + 2 * 4:], offline[:, 3 + 2 * 4:], atol=1e-5, rtol=0)
+    torch.testing.assert_close(model(changed)[:, 3 + 2 * 4 :], offline[:, 3 + 2 * 4 :], atol=1e-5, rtol=0)
     assert not torch.allclose(model(changed)[:, 3], offline[:, 3])
 
 

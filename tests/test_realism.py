@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import torch
 
+from ecas.core.paths import CHECKPOINTS_DIR
+from gesture.body.skeleton import Skeleton
 from gesture.eval import metrics as M
 from gesture.eval import realism as R
-from gesture.body.skeleton import Skeleton
 from gesture.synth.face import expressions_from_activations
 from gesture.synth.tracks import add_bump
 from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
@@ -87,7 +88,7 @@ def test_feet_are_planted_until_they_step():
     assert R.feet_stats(poses, trans, Skeleton.default())["ankles_planted_fraction"] == 1.0
     trans[:, 0] = 0.01 * np.arange(n) / FPS  # the body slides 1 cm/s: still planted
     assert R.feet_stats(poses, trans, Skeleton.default())["ankles_planted_fraction"] == 1.0
-    trans[5 * FPS:, 0] += 0.5 * np.arange(5 * FPS) / FPS  # then both feet slide 0.5 m/s: half the frames
+    trans[5 * FPS :, 0] += 0.5 * np.arange(5 * FPS) / FPS  # then both feet slide 0.5 m/s: half the frames
     feet = R.feet_stats(poses, trans, Skeleton.default())
     assert feet["ankles_planted_fraction"] == pytest.approx(0.5, abs=0.02)
     assert feet["ankle_speed_p90"] == pytest.approx(0.51, abs=0.01)
@@ -164,8 +165,9 @@ def test_cli_names_a_missing_file(tmp_path, capsys):
 def test_evaluate_suite_real_is_the_realism_report(tmp_path, capsys):
     from gesture.eval.evaluate import main as evaluate_main
 
-    code = evaluate_main(["--suite", "real", "--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"),
-                          "--no-video"])
+    code = evaluate_main(
+        ["--suite", "real", "--motion", str(tmp_path / "none.npz"), "--out", str(tmp_path / "out"), "--no-video"]
+    )
     assert code == 2
     assert "none.npz" in capsys.readouterr().err
 
@@ -173,14 +175,14 @@ def test_evaluate_suite_real_is_the_realism_report(tmp_path, capsys):
 @needs_clip
 def test_the_real_clip_through_the_shipped_codecs_keeps_its_length_and_loses_detail():
     real = R.load_clip(CLIP_NPZ)
-    recon = R.through_codecs(real, R.ROOT / "checkpoints" / "codecs")
+    recon = R.through_codecs(real, CHECKPOINTS_DIR / "codecs")
     assert abs(len(recon.poses) - len(real.poses)) <= 2 and np.isfinite(recon.poses).all()
     before, after = R.group_stats(R.inner(real.poses)), R.group_stats(R.inner(recon.poses))
     assert 0.0 < after["wrists"]["diversity"] < before["wrists"]["diversity"]  # the codec's ceiling is below real
 
 
 def test_the_ceilings_codecs_follow_the_agents_config(tmp_path):
-    assert R.config_codecs(R.DEFAULT_APP_CONFIG) == R.ROOT / "checkpoints" / "codecs"
+    assert R.config_codecs(R.DEFAULT_APP_CONFIG) == CHECKPOINTS_DIR / "codecs"
     moved = R.config_codecs(R.DEFAULT_APP_CONFIG, ["gesture.codec_checkpoints=runs/candidate/codecs"])
     assert moved == R.ROOT / "runs" / "candidate" / "codecs"
 

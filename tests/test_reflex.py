@@ -31,7 +31,7 @@ def test_streamed_in_steps_equals_the_whole_session():
     local = axis_angle_to_matrix(swaying_body(300, 3.0) + 0.02 * np.random.default_rng(1).standard_normal((300, 55, 3)))
     whole = PostureReflexes(FPS).step(local)
     streamed = PostureReflexes(FPS)
-    steps = np.concatenate([streamed.step(local[i:i + 2]) for i in range(0, len(local), 2)])
+    steps = np.concatenate([streamed.step(local[i : i + 2]) for i in range(0, len(local), 2)])
     np.testing.assert_allclose(steps, whole, atol=1e-9)
 
 
@@ -74,8 +74,12 @@ def test_the_counter_turn_is_spread_over_the_chain():
     poses = swaying_body(400, 4.0)
     local = axis_angle_to_matrix(poses)
     steadied = PostureReflexes(FPS, (Reflex(CHEST.joints, CHEST.share, CHEST.course_hz),)).step(local)
-    turned = [np.arccos(np.clip((np.trace(np.swapaxes(local[:, j], -1, -2) @ steadied[:, j], axis1=-2, axis2=-1) - 1)
-                                / 2, -1, 1))[100:].mean() for j in CHEST.joints]
+    turned = [
+        np.arccos(
+            np.clip((np.trace(np.swapaxes(local[:, j], -1, -2) @ steadied[:, j], axis1=-2, axis2=-1) - 1) / 2, -1, 1)
+        )[100:].mean()
+        for j in CHEST.joints
+    ]
     np.testing.assert_allclose(turned, turned[0], rtol=0.02)
 
 

@@ -3,10 +3,17 @@
 import numpy as np
 import pytest
 
-from core.body import CONTACT_JOINTS, UPPER_JOINTS
+from ecas.core.body import CONTACT_JOINTS, UPPER_JOINTS
 from gesture.body.motion import canonicalize, foot_contacts, integrate_velocity, root_velocity
-from gesture.body.regions import (FACE_DIM, LOWER_CONTACT_SLICE, LOWER_DIM, LOWER_VELOCITY_SLICE, UPPER_DIM,
-                                  features_to_motion, motion_to_features)
+from gesture.body.regions import (
+    FACE_DIM,
+    LOWER_CONTACT_SLICE,
+    LOWER_DIM,
+    LOWER_VELOCITY_SLICE,
+    UPPER_DIM,
+    features_to_motion,
+    motion_to_features,
+)
 from gesture.body.rotation import axis_angle_to_matrix, resample_motion, yaw_of_matrix
 from tests.data.beat2_clip import CLIP_NPZ, needs_clip
 

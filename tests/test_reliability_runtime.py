@@ -15,17 +15,17 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pytest
 import soundfile as sf
 import yaml
 
-from core.messages import DialogueStep, GestureStep, Message
 from agent.sections import RunConfig
 from agent.supervisor import remove_dead_runs_ipc_dirs
+from ecas.core.messages import DialogueStep, Message
 from tests import components
 from tests.test_runtime import finish, leftovers
 from tests.test_runtime import launch as launch_with_test_stages
@@ -121,8 +121,11 @@ def limit_file_size() -> None:
 def test_a_sink_that_cannot_write_stops_the_run_in_one_line(tmp_path):
     wav = recording(tmp_path / "talk.wav", 12.0)
     mp4 = tmp_path / "out" / "talk.mp4"
-    proc = launch(["--replay", str(wav), "--headless", "--mp4", str(mp4), *REAL_RENDER], tmp_path / "run",
-                  preexec_fn=limit_file_size)
+    proc = launch(
+        ["--replay", str(wav), "--headless", "--mp4", str(mp4), *REAL_RENDER],
+        tmp_path / "run",
+        preexec_fn=limit_file_size,
+    )
     code, output = finish(proc, timeout_s=300)
     assert code == 1, output
     line = error_line(output)
@@ -133,14 +136,27 @@ def test_a_sink_that_cannot_write_stops_the_run_in_one_line(tmp_path):
 
 def test_a_stage_that_makes_no_progress_while_its_input_waits_fails_the_run(tmp_path):
     wav = recording(tmp_path / "talk.wav", 3.0)
-    proc = launch(["--replay", str(wav), "--fast", "--set", "run.components.gesture="
-                   "tests.test_reliability_runtime:stalling_gesture", "--set", "bus.stall_timeout_s=2"],
-                  tmp_path / "run", {STALL_AT_STEP: "5"})
+    proc = launch(
+        [
+            "--replay",
+            str(wav),
+            "--fast",
+            "--set",
+            "run.components.gesture=tests.test_reliability_runtime:stalling_gesture",
+            "--set",
+            "bus.stall_timeout_s=2",
+        ],
+        tmp_path / "run",
+        {STALL_AT_STEP: "5"},
+    )
     code, output = finish(proc)
     assert code == 1, output
     line = error_line(output)
-    assert re.fullmatch(r"stage 'gesture' made no progress for [2-9] s while its input waited \(it got to "
-                        r"step 4, 'dialogue' to step \d+; bus.stall_timeout_s=2\); see .*gesture.log", line), line
+    assert re.fullmatch(
+        r"stage 'gesture' made no progress for [2-9] s while its input waited \(it got to "
+        r"step 4, 'dialogue' to step \d+; bus.stall_timeout_s=2\); see .*gesture.log",
+        line,
+    ), line
     assert leftovers(proc.pid) == [] and ipc_dirs(proc.pid) == []
 
 
@@ -149,8 +165,11 @@ def test_a_render_stage_killed_while_writing_leaves_no_partial_mp4(tmp_path):
     wav = recording(tmp_path / "talk.wav", 60.0)
     mp4 = tmp_path / "out" / "talk.mp4"
     proc = launch(["--replay", str(wav), "--headless", "--mp4", str(mp4), *REAL_RENDER], tmp_path / "run")
-    wait_until(lambda: any(p.stat().st_size > 0 for p in mp4.parent.glob("*.partial")) or proc.poll() is not None,
-               120, "the render stage writes its MP4")
+    wait_until(
+        lambda: any(p.stat().st_size > 0 for p in mp4.parent.glob("*.partial")) or proc.poll() is not None,
+        120,
+        "the render stage writes its MP4",
+    )
     render = stage_pid(proc.pid, "render")
     assert render is not None and proc.poll() is None
     os.kill(render, signal.SIGKILL)
@@ -180,8 +199,11 @@ def test_a_killed_launcher_leaves_no_socket_directory(tmp_path, when):
 def test_the_next_run_removes_socket_directories_of_dead_runs_only(tmp_path):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    dead_dir, live_dir, other = tmp_path / f"ecas-{dead.pid}-abc", tmp_path / f"ecas-{os.getpid()}-def", \
-        tmp_path / "ecas-notapid"
+    dead_dir, live_dir, other = (
+        tmp_path / f"ecas-{dead.pid}-abc",
+        tmp_path / f"ecas-{os.getpid()}-def",
+        tmp_path / "ecas-notapid",
+    )
     for d in (dead_dir, live_dir, other):
         d.mkdir()
         (d / "io.sock").write_text("")
@@ -193,8 +215,9 @@ def test_the_next_run_removes_socket_directories_of_dead_runs_only(tmp_path):
 def test_runs_started_in_the_same_second_get_their_own_report_directory(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     made: list[Path] = []
-    threads = [threading.Thread(target=lambda: made.append(RunConfig().make_report_dir("20260101-000000")))
-               for _ in range(16)]
+    threads = [
+        threading.Thread(target=lambda: made.append(RunConfig().make_report_dir("20260101-000000"))) for _ in range(16)
+    ]
     for t in threads:
         t.start()
     for t in threads:
@@ -207,8 +230,9 @@ def test_an_offline_source_waiting_for_credit_does_not_spin(tmp_path):
     """The renderer takes 80 ms a step; the io stage waits for credit nearly all the run and must sleep."""
     wav = recording(tmp_path / "talk.wav", 8.0)
     env = {components.RENDER_SLEEP_S: "0.08"}  # per gesture step: real time
-    code, output = finish(launch(["--replay", str(wav), "--fast", "--set", "bus.credit_window_steps=4"],
-                                 tmp_path / "run", env))
+    code, output = finish(
+        launch(["--replay", str(wav), "--fast", "--set", "bus.credit_window_steps=4"], tmp_path / "run", env)
+    )
     assert code == 0, output
     latency = json.loads((tmp_path / "run" / "latency.json").read_text())
     wall_s = latency["stream"]["stream_wall_s"]

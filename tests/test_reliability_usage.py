@@ -19,9 +19,14 @@ import soundfile as sf
 ROOT = Path(__file__).resolve().parents[1]
 TMP = Path("/tmp")
 EXIT_USAGE = 2
-TEST_STAGES = ["--set", "run.components.dialogue=tests.components:echo_dialogue",
-               "--set", "run.components.gesture=tests.components:wave_gesture",
-               "--set", "run.components.render=tests.components:recorder"]
+TEST_STAGES = [
+    "--set",
+    "run.components.dialogue=tests.components:echo_dialogue",
+    "--set",
+    "run.components.gesture=tests.components:wave_gesture",
+    "--set",
+    "run.components.render=tests.components:recorder",
+]
 
 
 @pytest.fixture
@@ -33,8 +38,15 @@ def talk(tmp_path) -> Path:
 
 def start_usage_error(cmd: list[str], cwd: Path = ROOT) -> subprocess.Popen:
     """Start an entry point in its own session."""
-    return subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    return subprocess.Popen(
+        cmd,
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )
 
 
 def finish_usage_error(proc: subprocess.Popen) -> tuple[int, str, int]:
@@ -89,15 +101,17 @@ def test_negative_seed(tmp_path, talk):
 def test_empty_config_names_the_missing_checkpoint(tmp_path, talk):
     empty = tmp_path / "empty.yaml"
     empty.write_text("")
-    code, err, pid = run_usage_error(launch_cmd("--replay", str(talk), "--headless", "--config", str(empty),
-                                                report=tmp_path / "run"))
+    code, err, pid = run_usage_error(
+        launch_cmd("--replay", str(talk), "--headless", "--config", str(empty), report=tmp_path / "run")
+    )
     assert_one_line_and_nothing_left(code, err, pid, "gesture.lm_checkpoint: required")
     assert not (tmp_path / "run").exists()
 
 
 def test_config_that_is_a_directory(tmp_path, talk):
-    code, err, pid = run_usage_error(launch_cmd("--replay", str(talk), "--config", f"{tmp_path}/",
-                                                report=tmp_path / "run"))
+    code, err, pid = run_usage_error(
+        launch_cmd("--replay", str(talk), "--config", f"{tmp_path}/", report=tmp_path / "run")
+    )
     assert_one_line_and_nothing_left(code, err, pid, "is a directory, not a YAML config file")
 
 
@@ -112,8 +126,17 @@ def test_report_at_an_existing_file(tmp_path, talk):
 def test_mp4_that_cannot_be_written(tmp_path, talk):
     blocker = tmp_path / "a_file"
     blocker.write_text("")
-    code, err, pid = run_usage_error(launch_cmd("--replay", str(talk), "--headless", "--mp4",
-                                                str(blocker / "out.mp4"), *TEST_STAGES, report=tmp_path / "run"))
+    code, err, pid = run_usage_error(
+        launch_cmd(
+            "--replay",
+            str(talk),
+            "--headless",
+            "--mp4",
+            str(blocker / "out.mp4"),
+            *TEST_STAGES,
+            report=tmp_path / "run",
+        )
+    )
     assert_one_line_and_nothing_left(code, err, pid, f"--mp4 {blocker / 'out.mp4'}: cannot write there")
     assert not (tmp_path / "run").exists()
 
@@ -123,9 +146,19 @@ def test_a_busy_tcp_port_names_the_port_and_the_option(tmp_path, talk):
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        code, err, pid = run_usage_error(launch_cmd(
-            "--replay", str(talk), "--headless", *TEST_STAGES, "--set", "bus.transport=tcp",
-            "--set", f"bus.base_port={port - 2}", report=tmp_path / "run"))  # port - 2 + 2: gesture's port
+        code, err, pid = run_usage_error(
+            launch_cmd(
+                "--replay",
+                str(talk),
+                "--headless",
+                *TEST_STAGES,
+                "--set",
+                "bus.transport=tcp",
+                "--set",
+                f"bus.base_port={port - 2}",
+                report=tmp_path / "run",
+            )
+        )  # port - 2 + 2: gesture's port
     assert_one_line_and_nothing_left(code, err, pid, f"bus.base_port: tcp port {port} on 127.0.0.1 (gesture) is in use")
     assert not (tmp_path / "run").exists()
 
@@ -135,8 +168,9 @@ def test_a_second_dashboard_on_a_busy_port(tmp_path, talk):
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        code, err, pid = run_usage_error(launch_cmd("--replay", str(talk), *TEST_STAGES,
-                                                    "--set", f"dashboard.port={port}", report=tmp_path / "run"))
+        code, err, pid = run_usage_error(
+            launch_cmd("--replay", str(talk), *TEST_STAGES, "--set", f"dashboard.port={port}", report=tmp_path / "run")
+        )
     assert_one_line_and_nothing_left(code, err, pid, f"dashboard.port: 127.0.0.1:{port} is in use")
     assert "http://" not in err  # no other run's URL
 
@@ -146,8 +180,12 @@ T = 50
 
 
 def _motion(path: Path, **overrides) -> Path:
-    arrays = dict(poses=np.zeros((T, 165)), trans=np.zeros((T, 3)), expressions=np.zeros((T, 100)),
-                  mocap_frame_rate=np.float32(25))
+    arrays = dict(
+        poses=np.zeros((T, 165)),
+        trans=np.zeros((T, 3)),
+        expressions=np.zeros((T, 100)),
+        mocap_frame_rate=np.float32(25),
+    )
     arrays.update(overrides)
     np.savez(path, **{k: v for k, v in arrays.items() if v is not None})
     return path
@@ -191,10 +229,20 @@ def play_cases(tmp_path_factory) -> dict[str, tuple[Path, Path]]:
 @pytest.fixture(scope="module")
 def play_results(play_cases) -> dict[str, tuple[int, str, int]]:
     """`render.play` on every case, side by side."""
-    return run_usage_errors({case: [sys.executable, "-m", "render.play", str(motion),
-                                    *[a.format(d=folder) for a in PLAY_CASES[case][1]],
-                                    "--mp4", str(folder / "out" / "video.mp4")]
-                             for case, (folder, motion) in play_cases.items()})
+    return run_usage_errors(
+        {
+            case: [
+                sys.executable,
+                "-m",
+                "render.play",
+                str(motion),
+                *[a.format(d=folder) for a in PLAY_CASES[case][1]],
+                "--mp4",
+                str(folder / "out" / "video.mp4"),
+            ]
+            for case, (folder, motion) in play_cases.items()
+        }
+    )
 
 
 @pytest.mark.parametrize("case", sorted(PLAY_CASES))
@@ -206,19 +254,38 @@ def test_render_play_rejects_bad_input_in_one_line(play_cases, play_results, cas
 
 # ---- the training and data CLIs -----------------------------------------------------------------------------------
 CLI_CASES = {
-    "train_codec config dir": (["gesture.train_codec", "--config", "{d}", "--region", "upper"],
-                               "is a directory"),
-    "train_codec steps 0": (["gesture.train_codec", "--config", "configs/codec/small.yaml", "--region", "upper",
-                             "--steps", "0"], "--steps: must be >= 1"),
-    "train_lm config dir": (["gesture.train_lm", "--config", "{d}", "--data", "{d}", "--out", "{d}/out"],
-                            "is a directory"),
-    "train_lm no recordings": (["gesture.train_lm", "--config", "configs/lm/small.yaml", "--data", "{d}", "--out",
-                                "{d}/out"], "not a directory of npz recordings"),
-    "train_lm epochs 0": (["gesture.train_lm", "--config", "configs/lm/small.yaml", "--data", "{d}", "--out",
-                           "{d}/out", "--epochs", "0"], "--epochs: must be >= 1"),
+    "train_codec config dir": (["gesture.train_codec", "--config", "{d}", "--region", "upper"], "is a directory"),
+    "train_codec steps 0": (
+        ["gesture.train_codec", "--config", "ecas/configs/codec/small.yaml", "--region", "upper", "--steps", "0"],
+        "--steps: must be >= 1",
+    ),
+    "train_lm config dir": (
+        ["gesture.train_lm", "--config", "{d}", "--data", "{d}", "--out", "{d}/out"],
+        "is a directory",
+    ),
+    "train_lm no recordings": (
+        ["gesture.train_lm", "--config", "ecas/configs/lm/small.yaml", "--data", "{d}", "--out", "{d}/out"],
+        "not a directory of npz recordings",
+    ),
+    "train_lm epochs 0": (
+        [
+            "gesture.train_lm",
+            "--config",
+            "ecas/configs/lm/small.yaml",
+            "--data",
+            "{d}",
+            "--out",
+            "{d}/out",
+            "--epochs",
+            "0",
+        ],
+        "--epochs: must be >= 1",
+    ),
     "build missing root": (["gesture.data.build", "--root", "{d}/nope", "--out", "{d}/cache"], "nope"),
-    "tokenize missing codecs": (["gesture.data.tokenize", "--root", "{d}", "--codecs", "{d}/nope", "--out",
-                                 "{d}/tok"], "nope"),
+    "tokenize missing codecs": (
+        ["gesture.data.tokenize", "--root", "{d}", "--codecs", "{d}/nope", "--out", "{d}/tok"],
+        "nope",
+    ),
 }
 
 
@@ -231,8 +298,9 @@ def cli_cases(tmp_path_factory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def cli_results(cli_cases) -> dict[str, tuple[int, str, int]]:
     """Every CLI_CASES command, side by side."""
-    return run_usage_errors({case: [sys.executable, "-m", *[a.format(d=d) for a in CLI_CASES[case][0]]]
-                             for case, d in cli_cases.items()})
+    return run_usage_errors(
+        {case: [sys.executable, "-m", *[a.format(d=d) for a in CLI_CASES[case][0]]] for case, d in cli_cases.items()}
+    )
 
 
 @pytest.mark.parametrize("case", sorted(CLI_CASES))

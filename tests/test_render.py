@@ -11,8 +11,8 @@ import torch
 from render.avatar import build_avatar
 from render.lbs import Skinner
 from render.renderer import CameraRig, MeshRenderer
-from render.view import AvatarView
 from render.testing import needs_osmesa, silhouette, silhouette_center
+from render.view import AvatarView
 
 torch.set_num_threads(1)
 pytestmark = needs_osmesa
@@ -100,8 +100,10 @@ print(digest.hexdigest())
 
 def test_the_same_poses_render_the_same_pixels_in_every_process():
     """Object addresses differ between processes; the image must not (pyrender's light order followed them)."""
-    procs = [subprocess.Popen([sys.executable, "-c", FRAMES_HASH_SCRIPT], stdout=subprocess.PIPE, text=True, cwd=ROOT)
-             for _ in range(4)]
+    procs = [
+        subprocess.Popen([sys.executable, "-c", FRAMES_HASH_SCRIPT], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+        for _ in range(4)
+    ]
     digests = {proc.communicate(timeout=300)[0].strip() for proc in procs}
     assert [proc.returncode for proc in procs] == [0] * 4
     assert len(digests) == 1 and len(digests.pop()) == 40
@@ -126,7 +128,7 @@ def test_egl_platform_renders_or_is_reported_unavailable():
 
 
 def test_render_config_errors_name_the_option():
-    from core.config import ConfigError, build_dataclass
+    from ecas.core.config import ConfigError, build_dataclass
     from render.config import RenderConfig
 
     with pytest.raises(ConfigError, match=r"^render\.size: must be an even"):

@@ -15,14 +15,17 @@ import numpy as np
 import pytest
 import soundfile as sf
 
-from core.timing import STEP_SAMPLES, SAMPLE_RATE_HZ
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from tests import components
 
 ROOT = Path(__file__).resolve().parents[1]
 TEST_STAGES = [
-    "--set", "run.components.dialogue=tests.components:echo_dialogue",
-    "--set", "run.components.gesture=tests.components:wave_gesture",
-    "--set", "run.components.render=tests.components:recorder",
+    "--set",
+    "run.components.dialogue=tests.components:echo_dialogue",
+    "--set",
+    "run.components.gesture=tests.components:wave_gesture",
+    "--set",
+    "run.components.render=tests.components:recorder",
 ]
 TAIL_S = 0.32  # 4 steps of silence after the recording
 
@@ -40,10 +43,28 @@ def talk(tmp_path) -> tuple[Path, int]:
 def launch(args: list[str], report: Path, env: dict | None = None, **kw) -> subprocess.Popen:
     """launch.py with the test stages and a dashboard on any free port (tests may run beside another run);
     an option in `args` wins over these (a later --set wins)."""
-    cmd = [sys.executable, str(ROOT / "launch.py"), *TEST_STAGES, "--set", f"io.tail_silence_s={TAIL_S}",
-           "--set", "dashboard.port=0", *args, "--report", str(report)]
-    return subprocess.Popen(cmd, cwd=ROOT, env={**os.environ, **(env or {})}, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True, **kw)
+    cmd = [
+        sys.executable,
+        str(ROOT / "launch.py"),
+        *TEST_STAGES,
+        "--set",
+        f"io.tail_silence_s={TAIL_S}",
+        "--set",
+        "dashboard.port=0",
+        *args,
+        "--report",
+        str(report),
+    ]
+    return subprocess.Popen(
+        cmd,
+        cwd=ROOT,
+        env={**os.environ, **(env or {})},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        **kw,
+    )
 
 
 def finish(proc: subprocess.Popen, timeout_s: float = 120) -> tuple[int, str]:
@@ -96,8 +117,9 @@ def test_every_step_arrives_once_in_order(talk, tmp_path, mode):
 def test_offline_never_drops_when_the_renderer_is_ten_times_slower(talk, tmp_path):
     wav, n_steps = talk
     env = {components.RENDER_SLEEP_S: "0.04"}  # 2 frames × 40 ms per 80 ms step, ~10× the other stages
-    code, output = finish(launch(["--replay", str(wav), "--fast", "--set", "bus.credit_window_steps=3"],
-                                 tmp_path / "run", env))
+    code, output = finish(
+        launch(["--replay", str(wav), "--fast", "--set", "bus.credit_window_steps=3"], tmp_path / "run", env)
+    )
     assert code == 0, output
     rows = received(tmp_path / "run", "gesture.step")
     assert [r["step"] for r in rows] == list(range(n_steps))
@@ -179,8 +201,10 @@ def test_stages_split_across_two_launchers_over_tcp(talk, tmp_path):
     """A main host (io, render, supervisor) and a worker host (dialogue, gesture) on loopback tcp."""
     wav, n_steps = talk
     tcp = ["--set", "bus.transport=tcp", "--set", f"bus.base_port={_free_port_block(6)}"]
-    worker = launch(["--replay", str(wav), "--fast", "--worker", "--set", "run.spawn=[dialogue, gesture]", *tcp],
-                    tmp_path / "worker")
+    worker = launch(
+        ["--replay", str(wav), "--fast", "--worker", "--set", "run.spawn=[dialogue, gesture]", *tcp],
+        tmp_path / "worker",
+    )
     main = launch(["--replay", str(wav), "--fast", "--set", "run.spawn=[io, render]", *tcp], tmp_path / "main")
     code, output = finish(main)
     worker_code, worker_output = finish(worker)

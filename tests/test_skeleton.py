@@ -5,8 +5,15 @@ import pytest
 import torch
 
 from gesture.body.rotation import axis_angle_to_matrix
-from gesture.body.skeleton import (JOINT_NAMES, PARENTS, Skeleton, SkeletonError, forward_kinematics,
-                                   forward_kinematics_np, skinning_transforms)
+from gesture.body.skeleton import (
+    JOINT_NAMES,
+    PARENTS,
+    Skeleton,
+    SkeletonError,
+    forward_kinematics,
+    forward_kinematics_np,
+    skinning_transforms,
+)
 
 torch.set_num_threads(1)
 

@@ -26,7 +26,7 @@ def speech():
 def test_streaming_codes_equal_offline_codes(shipped, speech):
     offline = shipped.encode(torch.from_numpy(speech)[None])[0].numpy()  # (8, S)
     stream = StreamingSpeechEncoder(shipped)
-    streamed = np.stack([stream.step(speech[i:i + 1920]) for i in range(0, len(speech), 1920)], -1)
+    streamed = np.stack([stream.step(speech[i : i + 1920]) for i in range(0, len(speech), 1920)], -1)
     assert streamed.shape == offline.shape == (8, len(speech) // 1920)
     np.testing.assert_array_equal(streamed, offline)
 
@@ -38,7 +38,7 @@ def test_streaming_latent_equals_offline_within_1e5(shipped, speech):
         full, _ = shipped.encode_latent(shipped.step_features(padded))
         hidden, pieces = None, []
         for s in range(20):
-            chunk = padded[:, s * 1920: (s + 1) * 1920 + shipped.history_samples()]
+            chunk = padded[:, s * 1920 : (s + 1) * 1920 + shipped.history_samples()]
             latent, hidden = shipped.encode_latent(shipped.step_features(chunk), hidden)
             pieces.append(latent)
     torch.testing.assert_close(torch.cat(pieces, 1), full, atol=1e-5, rtol=0)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.config import ConfigError
-from core.timing import MOTION_FPS
+from ecas.core.config import ConfigError
+from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.config import StabilizerConfig
 from gesture.eval.realism import STILL_RAD_S, angular_speeds
@@ -34,7 +34,7 @@ def test_streaming_in_steps_equals_one_call_and_reset_replays():
     stabilizer = _stabilizer()
     whole = stabilizer.step(poses)
     stabilizer.reset()
-    steps = np.concatenate([stabilizer.step(poses[i:i + 2]) for i in range(0, len(poses), 2)])
+    steps = np.concatenate([stabilizer.step(poses[i : i + 2]) for i in range(0, len(poses), 2)])
     np.testing.assert_allclose(steps, whole, atol=1e-6)
 
 
@@ -77,8 +77,13 @@ def test_a_drift_becomes_holds_within_hold_rad_of_the_input():
     assert (angular_speeds(smooth, MOTION_FPS)[:, 18:20] == 0).mean() == 0.0  # a low-pass alone never stops
     held = angular_speeds(out, MOTION_FPS)[:, 18:20] == 0  # (T-1, 2) frames whose output did not move
     assert held.mean() > 0.1
-    apart = np.linalg.norm(matrix_to_axis_angle_np(np.swapaxes(axis_angle_to_matrix_np(drift[1:, 18:20].astype(
-        np.float64)), -1, -2) @ axis_angle_to_matrix_np(out[1:, 18:20].astype(np.float64))), axis=-1)  # (T-1, 2) rad
+    apart = np.linalg.norm(
+        matrix_to_axis_angle_np(
+            np.swapaxes(axis_angle_to_matrix_np(drift[1:, 18:20].astype(np.float64)), -1, -2)
+            @ axis_angle_to_matrix_np(out[1:, 18:20].astype(np.float64))
+        ),
+        axis=-1,
+    )  # (T-1, 2) rad
     assert apart[held].max() <= holding.hold_rad[0] + 1e-6
     np.testing.assert_array_equal(out[:, 20:22], smooth[:, 20:22])  # the wrists have no hold
 
@@ -110,8 +115,7 @@ def test_bad_options_give_errors_that_name_them():
     with pytest.raises(ConfigError, match="gesture.stabilizer.joints: must name at least one joint"):
         StabilizerConfig(joints=())
     with pytest.raises(ConfigError, match=r"gesture.stabilizer: joints: need one or more of 0..54, got \[18, 60\]"):
-        build_stabilizer(StabilizerConfig(enabled=True, joints=(18, 60), min_cutoff_hz=(1.0, 1.0),
-                                          hold_rad=(0.0, 0.0)))
+        build_stabilizer(StabilizerConfig(enabled=True, joints=(18, 60), min_cutoff_hz=(1.0, 1.0), hold_rad=(0.0, 0.0)))
     assert build_stabilizer(StabilizerConfig()) is None
     with pytest.raises(ValueError, match=r"poses: expected \(frames, 55, 3\)"):
         _stabilizer().step(np.zeros((2, 24, 3)))

@@ -13,15 +13,16 @@ import numpy as np
 import pytest
 import torch
 
-from gesture.eval import suite
+from ecas.core.paths import CHECKPOINTS_DIR, data_root
 from gesture.body.motion import canonicalize
 from gesture.body.skeleton import Skeleton
 from gesture.data.beat2 import read_motion
 from gesture.data.chunks import motion_at_fps
+from gesture.eval import suite
 from gesture.lm.codecs import load_codecs
 
 REPO = Path(__file__).resolve().parents[1]
-BEAT2_NPZ = REPO.parent / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+BEAT2_NPZ = data_root() / "beat2" / "2_scott_0_1_1.npz"
 
 
 def test_listening_speaking_ratio_uses_step_vad_over_frames():
@@ -40,18 +41,34 @@ def test_frame_speeds_are_zero_for_a_still_pose_and_grow_with_motion():
 
 
 def test_goal_checks_use_the_issue_limits():
-    heldout = {"mean": {"l1div": 1.1, "l1div_gt": 1.0, "beat_align": 0.80, "beat_align_gt": 0.90, "va_accuracy": 0.95,
-                        "energy_ratio": 0.5, "energy_ratio_gt": 0.4, "codec_mpjpe_mm": 12.0}}
+    heldout = {
+        "mean": {
+            "l1div": 1.1,
+            "l1div_gt": 1.0,
+            "beat_align": 0.80,
+            "beat_align_gt": 0.90,
+            "va_accuracy": 0.95,
+            "energy_ratio": 0.5,
+            "energy_ratio_gt": 0.4,
+            "codec_mpjpe_mm": 12.0,
+        }
+    }
     goals = suite.check_goals(heldout, {"rel_change": -0.1})
-    assert goals["met"] == {"l1div_rel_error": True, "beat_align_abs_error": False, "va_accuracy": True,
-                            "energy_ratio_rel_error": True, "codec_mpjpe_mm": True, "collapse_rel_change": True}
+    assert goals["met"] == {
+        "l1div_rel_error": True,
+        "beat_align_abs_error": False,
+        "va_accuracy": True,
+        "energy_ratio_rel_error": True,
+        "codec_mpjpe_mm": True,
+        "collapse_rel_change": True,
+    }
     assert goals["values"]["beat_align_abs_error"] == pytest.approx(0.10)
     assert goals["values"]["energy_ratio_rel_error"] == pytest.approx(0.25)
 
 
 def test_heldout_sessions_are_the_training_datas_own_test_sessions_in_session_order(tmp_path):
-    from gesture.synth.config import SynthConfig
     from gesture.synth.build import SESSION_MINUTES, generate_sessions, generator_fingerprint
+    from gesture.synth.config import SynthConfig
 
     suite.ensure_heldout(tmp_path / "heldout", 2)
     takes = suite._test_takes(tmp_path / "heldout")
@@ -80,19 +97,20 @@ def test_codec_mpjpe_of_the_shipped_codecs_on_real_motion_is_finite_and_small():
     torch.set_num_threads(1)
     motion = motion_at_fps(read_motion(BEAT2_NPZ), 25)
     poses, trans = canonicalize(motion.poses[:200], motion.trans[:200])
-    codecs = load_codecs(REPO / "checkpoints" / "codecs")
+    codecs = load_codecs(CHECKPOINTS_DIR / "codecs")
     error = suite.codec_mpjpe_mm(codecs, poses, trans, motion.expressions[:200], Skeleton.default())
     assert 0.0 < error < 200.0  # real BEAT2 motion is out of the synthetic training domain: a loose bound
 
 
 def test_run_generator_collects_steps_and_is_reproducible():
+    from dialogue.text_vocab import LOCAL_SPEC
     from gesture.generator import GestureGenerator
     from gesture.lm.checkpoint import load_lm
-    from dialogue.text_vocab import LOCAL_SPEC
 
     torch.set_num_threads(1)
-    gen = GestureGenerator(load_lm(REPO / "checkpoints" / "gesture_lm", LOCAL_SPEC),
-                           load_codecs(REPO / "checkpoints" / "codecs"), seed=3)
+    gen = GestureGenerator(
+        load_lm(CHECKPOINTS_DIR / "gesture_lm", LOCAL_SPEC), load_codecs(CHECKPOINTS_DIR / "codecs"), seed=3
+    )
     text = np.full(12, -1)
     text[3] = 17
     audio = np.random.default_rng(0).integers(0, 256, (8, 12))
@@ -107,13 +125,38 @@ def test_run_generator_collects_steps_and_is_reproducible():
 @pytest.mark.slow
 def test_suite_cli_short_run(tmp_path):
     out = tmp_path / "report.json"
-    proc = subprocess.run([sys.executable, "-m", "gesture.evaluate", "--suite", "default", "--json", "--sessions", "1",
-                           "--seconds", "12", "--collapse-minutes", "1", "--out", str(out)],
-                          cwd=REPO, capture_output=True, text=True, check=True)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gesture.evaluate",
+            "--suite",
+            "default",
+            "--json",
+            "--sessions",
+            "1",
+            "--seconds",
+            "12",
+            "--collapse-minutes",
+            "1",
+            "--out",
+            str(out),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report == json.loads(out.read_text())
-    assert set(report["goals"]["met"]) == {"l1div_rel_error", "beat_align_abs_error", "va_accuracy",
-                                           "energy_ratio_rel_error", "codec_mpjpe_mm", "collapse_rel_change"}
+    assert set(report["goals"]["met"]) == {
+        "l1div_rel_error",
+        "beat_align_abs_error",
+        "va_accuracy",
+        "energy_ratio_rel_error",
+        "codec_mpjpe_mm",
+        "collapse_rel_change",
+    }
     held = report["heldout_synthetic"]["mean"]
     assert 0.0 <= held["va_accuracy"] <= 1.0 and held["l1div"] > 0 and held["codec_mpjpe_mm"] > 0
     assert report["beat2_playback"]["text_tokens"] > 0  # the playback backend's recognised words reached the LM

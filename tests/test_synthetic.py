@@ -7,20 +7,31 @@ import pytest
 import soundfile as sf
 import torch
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
 from gesture.body.regions import contacts_from_motion
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
+from gesture.config import MicroMotionConfig
 from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
-from gesture.synth.agent import (MICRO_GATE_HZ, MICRO_GATE_LOG_STD, MICRO_GATE_MAX, MICRO_PARTS, OWN_GATES,
-                                 gate_rms, micro_gate, micro_motion, micro_noise, soft_limit_angle,
-                                 synthesize_agent_motion)
-from gesture.synth.build import generate_dataset, generate_session, generator_fingerprint, main as synthetic_main
-from gesture.synth.calibration import MicroNoise
-from gesture.config import MicroMotionConfig
 from gesture.eval.realism import body_frame_joints
+from gesture.synth.agent import (
+    MICRO_GATE_HZ,
+    MICRO_GATE_LOG_STD,
+    MICRO_GATE_MAX,
+    MICRO_PARTS,
+    OWN_GATES,
+    gate_rms,
+    micro_gate,
+    micro_motion,
+    micro_noise,
+    soft_limit_angle,
+    synthesize_agent_motion,
+)
+from gesture.synth.build import generate_dataset, generate_session, generator_fingerprint
+from gesture.synth.build import main as synthetic_main
+from gesture.synth.calibration import MicroNoise
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig, build_synth_config, load_synth_config
 from gesture.synth.conversation import AGENT, USER, build_conversation
 from gesture.synth.face import FACE_PATTERNS
@@ -36,12 +47,18 @@ JOINT_LIMITS_RAD = {
     **{j: 0.8 for j in (0, 3, 6, 9, 12, 15)},  # root (incl. calibrated pitch), spine, neck, head
     # hips: the real clip reaches 0.87; the generator's legs twist up to 1.48 (p99 1.44, seeds 0-5 on the real clip's
     # speech, the Gaussian micro-motion's generator as well) when the pelvis turns and tilts over planted feet
-    **{j: 1.5 for j in (1, 2)}, **{j: 1.5 for j in (4, 5)}, **{j: 0.9 for j in (10, 11)},
+    **{j: 1.5 for j in (1, 2)},
+    **{j: 1.5 for j in (4, 5)},
+    **{j: 0.9 for j in (10, 11)},
     **{j: 1.1 for j in (7, 8)},  # the pelvis turns (micro-motion) over planted feet: the ankles take it (real: 0.87)
     **{j: 0.7 for j in (13, 14)},  # real clip: 0.68
-    **{j: 1.9 for j in (16, 17)}, **{j: 2.7 for j in (18, 19)},  # elbows: real clip 2.45
+    **{j: 1.9 for j in (16, 17)},
+    **{j: 2.7 for j in (18, 19)},  # elbows: real clip 2.45
     **{j: 1.5 for j in (20, 21)},  # real clip: 1.30
-    22: 0.2, 23: 0.0, 24: 0.0, **{j: 1.7 for j in range(25, 55)},
+    22: 0.2,
+    23: 0.0,
+    24: 0.0,
+    **{j: 1.7 for j in range(25, 55)},
 }
 
 
@@ -96,7 +113,11 @@ def test_beat2_reader_reads_the_output_and_builds_chunks(dataset):
     assert len(words) > 20 and all(0 <= w.start_s < w.end_s <= 60.0 for w in words)
     chunks = chunk_take(takes[0], DataConfig(root=str(root)))
     assert chunks.num_chunks == 6 and chunks.has_audio
-    assert chunks.upper.shape == (6, 250, 258) and chunks.lower.shape == (6, 250, 61) and chunks.face.shape == (6, 250, 106)
+    assert (
+        chunks.upper.shape == (6, 250, 258)
+        and chunks.lower.shape == (6, 250, 61)
+        and chunks.face.shape == (6, 250, 106)
+    )
     assert np.isfinite(chunks.upper).all() and np.abs(chunks.audio).max() > 0.05
 
 
@@ -130,7 +151,9 @@ def test_files_hold_both_speakers_and_the_agent_channel(dataset, session):
 
 def test_no_nan_and_joint_angles_within_limits(session):
     poses = session["poses"]
-    assert np.isfinite(poses).all() and np.isfinite(session["trans"]).all() and np.isfinite(session["expressions"]).all()
+    assert (
+        np.isfinite(poses).all() and np.isfinite(session["trans"]).all() and np.isfinite(session["expressions"]).all()
+    )
     angles = np.linalg.norm(poses, axis=-1).max(0)  # (55,)
     for j, limit in JOINT_LIMITS_RAD.items():
         assert angles[j] <= limit + 1e-6, (j, angles[j], limit)
@@ -195,7 +218,10 @@ def test_strokes_land_on_stressed_words():
     window = 5
     padded = np.pad(speed, window, mode="edge")
     local_max = np.stack([padded[k : k + len(speed)] for k in range(2 * window + 1)]).max(0)
-    minima = np.flatnonzero((speed[1:-1] < speed[:-2]) & (speed[1:-1] <= speed[2:]) & (speed[1:-1] < 0.5 * local_max[1:-1])) + 1
+    minima = (
+        np.flatnonzero((speed[1:-1] < speed[:-2]) & (speed[1:-1] <= speed[2:]) & (speed[1:-1] < 0.5 * local_max[1:-1]))
+        + 1
+    )
     onsets = np.array([w.start_s for w in conv.words_of(AGENT) if w.stressed])
 
     def hit_rate(times):
@@ -247,8 +273,10 @@ def test_barge_in_cuts_the_agent_mid_turn():
     for turn in cut:
         user_onsets = [u.start_s for u in conv.turns_of(USER, "turn") if u.start_s < turn.end_s < u.end_s]
         assert user_onsets and turn.end_s - max(user_onsets) <= cfg.reaction_s[1] + 0.05  # the user barged in
-        after = conv.channels[AGENT][int((turn.end_s + 0.01) * sr): int((turn.end_s + 0.1) * sr)]
-        assert np.abs(after).max() < 1e-3 or any(b.start_s < turn.end_s + 0.1 for b in conv.turns_of(AGENT) if b is not turn)
+        after = conv.channels[AGENT][int((turn.end_s + 0.01) * sr) : int((turn.end_s + 0.1) * sr)]
+        assert np.abs(after).max() < 1e-3 or any(
+            b.start_s < turn.end_s + 0.1 for b in conv.turns_of(AGENT) if b is not turn
+        )
     assert conv.turns_of(AGENT, "backchannel") and conv.turns_of(USER, "backchannel")
 
 
@@ -294,8 +322,8 @@ def test_speaking_agent_moves_like_the_real_speaker(session):
 
 
 def test_stored_micro_motion_covers_the_torso_head_and_arms():
-    from gesture.synth.calibration import load_calibration
     from gesture.eval.synth_fit import MICRO_JOINTS
+    from gesture.synth.calibration import load_calibration
 
     micro = load_calibration().micro_motion
     assert sorted(micro) == sorted(MICRO_JOINTS)
@@ -344,8 +372,15 @@ def test_agent_driven_by_the_clip_speech_matches_its_statistics():
     for seed in (0, 1, 2):
         _, motion = motion_for_recording(CLIP_WAV, seed=seed, words=words)
         clip = R.cut(R.canonical(M.MotionClip(motion.poses, motion.trans, motion.expressions, FPS)), len(real.poses))
-        reports.append(R.build_report(real, {"synthetic": clip}, M.load_speech(CLIP_WAV),
-                                      M.load_mean_speed(R.MEAN_SPEED_NPY), Skeleton.default())["synthetic"])
+        reports.append(
+            R.build_report(
+                real,
+                {"synthetic": clip},
+                M.load_speech(CLIP_WAV),
+                M.load_mean_speed(R.MEAN_SPEED_NPY),
+                Skeleton.default(),
+            )["synthetic"]
+        )
     for group in R.GOAL_GROUPS:
         for key in ("speed_median", "speed_p90", "still_fraction", "diversity"):
             ratio = np.mean([r["ratios"]["groups"][group][key] for r in reports])
@@ -368,8 +403,14 @@ def test_refit_holds_the_kept_joints_and_fits_the_others():
 
     stored = load_calibration().micro_motion
     keep = {j: stored[j] for j in MICRO_JOINTS if j not in (12, 15)}
-    fitted = fit(CLIP_NPZ.with_suffix(""), seeds=(0,), iterations=1, words=recognised_words(CLIP_WAV), log=lambda _: None,
-                 keep=keep)
+    fitted = fit(
+        CLIP_NPZ.with_suffix(""),
+        seeds=(0,),
+        iterations=1,
+        words=recognised_words(CLIP_WAV),
+        log=lambda _: None,
+        keep=keep,
+    )
     assert set(fitted) == set(MICRO_JOINTS)
     assert all(fitted[j] is keep[j] for j in keep)
     assert all(not np.allclose(fitted[j].std_rad, stored[j].std_rad) for j in (12, 15))

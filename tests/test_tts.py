@@ -25,8 +25,8 @@ def test_words_in_order_with_increasing_samples_inside_the_audio():
 def test_word_starts_match_the_audio_energy():
     utt = EspeakTts("en-us").synthesize(SENTENCE)
     for w in utt.words[1:]:  # voiced energy within 150 ms after each word start
-        window = utt.pcm[w.start_sample: w.start_sample + 3600]
-        assert np.sqrt(np.mean(window ** 2)) > 0.02, w
+        window = utt.pcm[w.start_sample : w.start_sample + 3600]
+        assert np.sqrt(np.mean(window**2)) > 0.02, w
 
 
 def test_rate_and_voice_change_the_audio():
@@ -69,9 +69,19 @@ def test_words_espeak_joins_to_a_neighbour_still_get_a_start():
 def test_the_same_sentence_gives_the_same_samples_whatever_else_draws_from_rand():
     """The default voice's breath noise uses libc rand(), which other libraries in the process draw from too (this
     made offline runs differ). Two fresh processes, one of which draws from rand() first, synthesise the same."""
-    script = ("import ctypes, hashlib, sys; from dialogue.tts import EspeakTts; tts = EspeakTts('en-us+f3'); "
-              "tts.synthesize('Hello.'); [ctypes.CDLL(None).rand() for _ in range(int(sys.argv[1]))]; "
-              "print(hashlib.md5(tts.synthesize('That sounds important.').pcm.tobytes()).hexdigest())")
-    digests = {subprocess.run([sys.executable, "-c", script, str(draws)], capture_output=True, text=True, check=True,
-                              cwd=Path(__file__).resolve().parents[1]).stdout for draws in (0, 17)}
+    script = (
+        "import ctypes, hashlib, sys; from dialogue.tts import EspeakTts; tts = EspeakTts('en-us+f3'); "
+        "tts.synthesize('Hello.'); [ctypes.CDLL(None).rand() for _ in range(int(sys.argv[1]))]; "
+        "print(hashlib.md5(tts.synthesize('That sounds important.').pcm.tobytes()).hexdigest())"
+    )
+    digests = {
+        subprocess.run(
+            [sys.executable, "-c", script, str(draws)],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).resolve().parents[1],
+        ).stdout
+        for draws in (0, 17)
+    }
     assert len(digests) == 1

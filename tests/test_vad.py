@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from core.messages import VadState
 from dialogue.config import ConfigError
 from dialogue.resample import StreamResampler
 from dialogue.vad import VAD_CHUNK_S, SileroVad, VadStateMachine
+from ecas.core.messages import VadState
 from tests.dialogue_helpers import LIBRIVOX, dialogue_cfg, load_24k
 
 
@@ -54,7 +54,7 @@ def test_silero_carries_the_remainder_across_blocks():
     speech16k = StreamResampler(24_000, 16_000).process(load_24k(LIBRIVOX))[:16_000]
     whole = SileroVad().process(speech16k)
     vad = SileroVad()
-    streamed = [p for i in range(0, len(speech16k), 1280) for p in vad.process(speech16k[i:i + 1280])]
+    streamed = [p for i in range(0, len(speech16k), 1280) for p in vad.process(speech16k[i : i + 1280])]
     np.testing.assert_allclose(streamed, whole, atol=1e-6)
 
 
@@ -65,7 +65,7 @@ def test_streaming_resampler_equals_offline_and_keeps_the_rate():
     sizes = [1920] * 10 + [7, 1, 3000] + [1920] * 3
     pieces, start = [], 0
     for n in sizes:
-        pieces.append(stream.process(x[start:start + n]))
+        pieces.append(stream.process(x[start : start + n]))
         start += n
     streamed = np.concatenate(pieces)
     np.testing.assert_allclose(streamed, offline[: len(streamed)], atol=1e-5)
@@ -79,12 +79,15 @@ def test_streaming_resampler_is_causal():
     np.testing.assert_array_equal(short, longer[: len(short)])
 
 
-@pytest.mark.parametrize("section, message", [
-    ({"vad": {"stop_threshold": 0.9, "start_threshold": 0.5}}, "dialogue.vad.stop_threshold"),
-    ({"vad": {"stop_s": 0}}, "dialogue.vad.stop_s"),
-    ({"barge_in_s": 0}, "dialogue.barge_in_s"),
-    ({"vad": {"hangover": 1}}, "dialogue.vad.hangover: unknown option"),
-])
+@pytest.mark.parametrize(
+    "section, message",
+    [
+        ({"vad": {"stop_threshold": 0.9, "start_threshold": 0.5}}, "dialogue.vad.stop_threshold"),
+        ({"vad": {"stop_s": 0}}, "dialogue.vad.stop_s"),
+        ({"barge_in_s": 0}, "dialogue.barge_in_s"),
+        ({"vad": {"hangover": 1}}, "dialogue.vad.hangover: unknown option"),
+    ],
+)
 def test_bad_vad_options_are_named(section, message):
     with pytest.raises(ConfigError, match=message):
         dialogue_cfg(**section)

@@ -10,22 +10,35 @@ import pytest
 import torch
 
 from gesture.nn import weights
-from gesture.nn.weights import (PORTABLE_ENV, WEIGHT_FORMS, UnsupportedFormError, fast_kernel_error, kernel_for,
-                                kernels_used, portable_kernels, quantize_int8_rows, require_fast_form, step_weight,
-                                stored_weights)
+from gesture.nn.weights import (
+    PORTABLE_ENV,
+    WEIGHT_FORMS,
+    UnsupportedFormError,
+    fast_kernel_error,
+    kernel_for,
+    kernels_used,
+    portable_kernels,
+    quantize_int8_rows,
+    require_fast_form,
+    step_weight,
+    stored_weights,
+)
 from tests.kernels import KERNELS, using
 
 # Largest |product - float32| relative to max |float32 product| for 64 inputs: float16 rounds operands to 2^-11,
 # bfloat16 to 2^-8 (inputs and output); int8 adds max|row|/254 per weight.
 TOLERANCE = {"float32": 1e-6, "float16": 2e-3, "bfloat16": 2e-2, "int8": 3e-2}
-PORTABLE = {"float32": "dense-float32", "float16": "dense-float16", "bfloat16": "dense-bfloat16",
-            "int8": "int8-in-bf16"}
+PORTABLE = {
+    "float32": "dense-float32",
+    "float16": "dense-float16",
+    "bfloat16": "dense-bfloat16",
+    "int8": "int8-in-bf16",
+}
 
 
 def _matrix(out_features=40, in_features=64, seed=0):
     generator = torch.Generator().manual_seed(seed)
-    return torch.randn(out_features, in_features, generator=generator), torch.randn(3, in_features,
-                                                                                    generator=generator)
+    return torch.randn(out_features, in_features, generator=generator), torch.randn(3, in_features, generator=generator)
 
 
 @pytest.mark.parametrize("kernels", KERNELS)
@@ -53,7 +66,7 @@ def test_fast_and_portable_kernels_agree_to_bfloat16_rounding(form):
         portable = step_weight(matrix, form)
     assert fast.kernel != portable.kernel
     scale = float(fast.apply(x).float().abs().max())
-    torch.testing.assert_close(fast.apply(x).float(), portable.apply(x).float(), atol=2 ** -7 * scale, rtol=0)
+    torch.testing.assert_close(fast.apply(x).float(), portable.apply(x).float(), atol=2**-7 * scale, rtol=0)
 
 
 def test_int8_quantization_rounds_each_row_to_its_own_scale():
@@ -72,10 +85,10 @@ def test_int8_rows_the_int8_kernel_cannot_take_are_stored_as_bfloat16():
 
 
 def test_the_environment_forces_the_portable_kernels():
-    code = ("from gesture.nn.weights import kernel_for; "
-            "print(kernel_for('bfloat16', 64), kernel_for('int8', 64))")
-    forced = subprocess.run([sys.executable, "-c", code], env={**_env(), PORTABLE_ENV: "1"}, capture_output=True,
-                            text=True, check=True)
+    code = "from gesture.nn.weights import kernel_for; print(kernel_for('bfloat16', 64), kernel_for('int8', 64))"
+    forced = subprocess.run(
+        [sys.executable, "-c", code], env={**_env(), PORTABLE_ENV: "1"}, capture_output=True, text=True, check=True
+    )
     assert forced.stdout.split() == ["dense-bfloat16", "int8-in-bf16"]
 
 
@@ -121,9 +134,26 @@ def test_launch_stops_in_one_line_when_the_cpu_cannot_run_the_form_and_fallback_
     root = Path(__file__).resolve().parents[1]
     report = tmp_path / "report"
     speech = root.parent / "shared/data/speech/librivox_0870.wav"
-    done = subprocess.run([sys.executable, "launch.py", "--replay", str(speech), "--headless", "--report",
-                           str(report), "--set", "gesture.dtype=bfloat16", "--set", "gesture.dtype_fallback=false"],
-                          cwd=root, env=_env(), capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "launch.py",
+            "--replay",
+            str(speech),
+            "--headless",
+            "--report",
+            str(report),
+            "--set",
+            "gesture.dtype=bfloat16",
+            "--set",
+            "gesture.dtype_fallback=false",
+        ],
+        cwd=root,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == expected_code
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(expected) and "gesture.dtype_fallback=true" in lines[0]

@@ -21,16 +21,27 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any
 
 import aiohttp
 
 BROWSER_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 BROWSER_ENV = "CHROMIUM"  # an explicit browser binary
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars",
-         "--autoplay-policy=no-user-gesture-required", "--remote-debugging-port=0")
+FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-dev-shm-usage",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+    "--autoplay-policy=no-user-gesture-required",
+    "--remote-debugging-port=0",
+)
 START_TIMEOUT_S = 30.0
 CLOSE_TIMEOUT_S = 5.0
 
@@ -39,7 +50,7 @@ class BrowserError(RuntimeError):
     pass
 
 
-def find_chromium() -> Optional[str]:
+def find_chromium() -> str | None:
     """The browser binary: $CHROMIUM, else the first of BROWSER_NAMES on PATH; None when there is none."""
     explicit = os.environ.get(BROWSER_ENV)
     if explicit:
@@ -51,25 +62,40 @@ class HeadlessChromium:
     """One headless Chromium with a fresh profile, showing `url` in a `width`×`height` window; `flags` are
     added to the command line (e.g. Chromium's fake microphone for tests)."""
 
-    def __init__(self, url: str, width: int = 1280, height: int = 1000, binary: Optional[str] = None,
-                 flags: Sequence[str] = ()):
+    def __init__(
+        self, url: str, width: int = 1280, height: int = 1000, binary: str | None = None, flags: Sequence[str] = ()
+    ):
         self.url, self.width, self.height, self.flags = url, width, height, tuple(flags)
         self.binary = binary or find_chromium()
         if self.binary is None:
             raise BrowserError(f"no Chromium found (looked for ${BROWSER_ENV} and {', '.join(BROWSER_NAMES)})")
         self._ids = itertools.count(1)
 
-    async def __aenter__(self) -> "HeadlessChromium":
+    async def __aenter__(self) -> HeadlessChromium:
         self.profile = Path(tempfile.mkdtemp(prefix="dash-chromium-"))
         self.process = subprocess.Popen(
-            [self.binary, *FLAGS, *self.flags, f"--user-data-dir={self.profile}",
-             f"--window-size={self.width},{self.height}", self.url], stdout=subprocess.DEVNULL, stderr=open(self.profile / "stderr.log", "wb"))
+            [
+                self.binary,
+                *FLAGS,
+                *self.flags,
+                f"--user-data-dir={self.profile}",
+                f"--window-size={self.width},{self.height}",
+                self.url,
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=open(self.profile / "stderr.log", "wb"),
+        )
         self.session = aiohttp.ClientSession()
         try:
             port = await self._devtools_port()
             self.ws = await self.session.ws_connect(await self._page_socket(port), max_msg_size=0)
-            await self.call("Emulation.setDeviceMetricsOverride", width=self.width, height=self.height,
-                            deviceScaleFactor=1, mobile=False)
+            await self.call(
+                "Emulation.setDeviceMetricsOverride",
+                width=self.width,
+                height=self.height,
+                deviceScaleFactor=1,
+                mobile=False,
+            )
         except BaseException:
             await self.__aexit__(None, None, None)
             raise
@@ -102,8 +128,10 @@ class HeadlessChromium:
         deadline = time.monotonic() + START_TIMEOUT_S
         while time.monotonic() < deadline:
             if self.process.poll() is not None:
-                raise BrowserError(f"{self.binary} exited with code {self.process.returncode}: "
-                                   f"{(self.profile / 'stderr.log').read_text(errors='replace')[-800:]}")
+                raise BrowserError(
+                    f"{self.binary} exited with code {self.process.returncode}: "
+                    f"{(self.profile / 'stderr.log').read_text(errors='replace')[-800:]}"
+                )
             lines = marker.read_text().split() if marker.exists() else []
             if lines:
                 return int(lines[0])
@@ -159,7 +187,7 @@ class HeadlessChromium:
         path.write_bytes(base64.b64decode(data["data"]))
 
 
-async def _snapshot(url: str, out: Path, wait: Optional[str], timeout_s: float, width: int, height: int) -> None:
+async def _snapshot(url: str, out: Path, wait: str | None, timeout_s: float, width: int, height: int) -> None:
     async with HeadlessChromium(url, width, height) as page:
         if wait:
             await page.wait_for(wait, timeout_s)

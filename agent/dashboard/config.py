@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import ipaddress
 from dataclasses import dataclass
-from typing import Optional
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
 
 LOOPBACK_NAMES = ("localhost",)
 
@@ -29,8 +28,8 @@ class DashboardConfig:
     port: int = 8998
     wait_for_start: bool = False
     browser_mic: bool = False
-    tls_cert: Optional[str] = None
-    tls_key: Optional[str] = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
     jpeg_quality: int = 80
     history_steps: int = 250
     max_turns: int = 40

@@ -11,13 +11,13 @@ from __future__ import annotations
 import collections
 import io
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
 
 import numpy as np
 
-from core.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
-from core.timing import FRAMES_PER_STEP, SAMPLE_RATE_HZ
+from ecas.core.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
+from ecas.core.timing import FRAMES_PER_STEP, SAMPLE_RATE_HZ
 
 NS_PER_MS = 1e6
 MAX_WORDS_PER_TURN = 400  # a longer turn keeps its last words
@@ -63,13 +63,20 @@ class Turn:
     start_step: int
     words: list[str] = field(default_factory=list)
     partial: str = ""
-    interrupted_at: Optional[int] = None  # agent: index of the word being spoken when the user cut in
+    interrupted_at: int | None = None  # agent: index of the word being spoken when the user cut in
     final: bool = False
 
     def event(self) -> Event:
-        return {"type": "turn", "id": self.id, "speaker": self.speaker, "start_step": self.start_step,
-                "words": list(self.words), "partial": self.partial, "interrupted_at": self.interrupted_at,
-                "final": self.final}
+        return {
+            "type": "turn",
+            "id": self.id,
+            "speaker": self.speaker,
+            "start_step": self.start_step,
+            "words": list(self.words),
+            "partial": self.partial,
+            "interrupted_at": self.interrupted_at,
+            "final": self.final,
+        }
 
 
 class Transcript:
@@ -78,8 +85,8 @@ class Transcript:
     def __init__(self, max_turns: int):
         self.turns: collections.deque[Turn] = collections.deque(maxlen=max_turns)
         self._next_id = 0
-        self._user: Optional[Turn] = None  # the open user turn
-        self._agent: Optional[Turn] = None  # the open agent turn
+        self._user: Turn | None = None  # the open user turn
+        self._agent: Turn | None = None  # the open agent turn
         self._agent_idle_steps = 0
         self._subwords = False  # the backend sends sentencepiece pieces (see _add_piece)
 
@@ -168,10 +175,16 @@ def level_dbfs(pcm: np.ndarray) -> float:
 
 
 def vad_event(msg: DialogueStep) -> Event:
-    return {"type": "vad", "step": msg.step, "prob": round(float(msg.user_vad_prob), 3),
-            "user_dbfs": level_dbfs(msg.user_pcm),
-            "state": msg.user_vad_state.value, "agent_speaking": bool(msg.agent_speaking),
-            "interrupted": bool(msg.agent_interrupted), "turn": turn_state(msg)}
+    return {
+        "type": "vad",
+        "step": msg.step,
+        "prob": round(float(msg.user_vad_prob), 3),
+        "user_dbfs": level_dbfs(msg.user_pcm),
+        "state": msg.user_vad_state.value,
+        "agent_speaking": bool(msg.agent_speaking),
+        "interrupted": bool(msg.agent_interrupted),
+        "turn": turn_state(msg),
+    }
 
 
 class LatencyMeter:
@@ -197,8 +210,12 @@ class LatencyMeter:
             stages[stage] = round((stamps[stage] - previous) / NS_PER_MS, 2)
             previous = stamps[stage]
         origin = msg.t_origin_ns - offsets_ns.get(self.pipeline[0], 0)
-        event = {"type": "latency", "step": msg.step,
-                 "e2e_ms": round((stamps[self.pipeline[-1]] - origin) / NS_PER_MS, 2), "stages": stages}
+        event = {
+            "type": "latency",
+            "step": msg.step,
+            "e2e_ms": round((stamps[self.pipeline[-1]] - origin) / NS_PER_MS, 2),
+            "stages": stages,
+        }
         self.history.append(event)
         return [event]
 
@@ -214,7 +231,7 @@ class RunState:
         self.stage_states = {stage: "starting" for stage in self.pipeline}
         self.counters: dict[str, dict] = {stage: {} for stage in self.pipeline}
         self.started = False
-        self.ended: Optional[str] = None  # "ended" | "stopped"
+        self.ended: str | None = None  # "ended" | "stopped"
 
     @property
     def phase(self) -> str:
@@ -242,14 +259,29 @@ class RunState:
         return [self.event()] if self.phase != before else []
 
     def event(self) -> Event:
-        return {"type": "run", "phase": self.phase, "stages": dict(self.stage_states),
-                "wait_for_start": self.wait_for_start}
+        return {
+            "type": "run",
+            "phase": self.phase,
+            "stages": dict(self.stage_states),
+            "wait_for_start": self.wait_for_start,
+        }
 
     def counters_event(self, own: dict[str, int]) -> Event:
-        return {"type": "counters", "stages": {s: dict(c) for s, c in self.counters.items()},
-                "states": dict(self.stage_states), "dashboard": own}
+        return {
+            "type": "counters",
+            "stages": {s: dict(c) for s, c in self.counters.items()},
+            "states": dict(self.stage_states),
+            "dashboard": own,
+        }
 
 
 def hello_event(pipeline: Sequence[str], live: bool, session: str, browser_mic: bool) -> Event:
-    return {"type": "hello", "pipeline": list(pipeline), "live": live, "session": session, "browser_mic": browser_mic,
-            "sample_rate_hz": SAMPLE_RATE_HZ, "frames_per_step": FRAMES_PER_STEP}
+    return {
+        "type": "hello",
+        "pipeline": list(pipeline),
+        "live": live,
+        "session": session,
+        "browser_mic": browser_mic,
+        "sample_rate_hz": SAMPLE_RATE_HZ,
+        "frames_per_step": FRAMES_PER_STEP,
+    }

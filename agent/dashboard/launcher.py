@@ -1,9 +1,9 @@
 """The supervisor's side of the dashboard: start its process, read the page's Start/Stop, notice if it dies.
 
-    dashboard = DashboardProcess.start(app, run, ipc_dir)   # None when dashboard.enabled is false
-    subscriber addresses += [dashboard.address]
-    dashboard.on_control(msg)        # a Control from source "dashboard" -> sets start_requested / stop_requested
-    dashboard.process, .log_path     # to notice that it died, and to terminate it with the stages
+dashboard = DashboardProcess.start(app, run, ipc_dir)   # None when dashboard.enabled is false
+subscriber addresses += [dashboard.address]
+dashboard.on_control(msg)        # a Control from source "dashboard" -> sets start_requested / stop_requested
+dashboard.process, .log_path     # to notice that it died, and to terminate it with the stages
 """
 
 from __future__ import annotations
@@ -11,13 +11,12 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 from pathlib import Path
-from typing import Optional
 
-from core.bus import stage_address
 from agent.dashboard.process import DASHBOARD, DashboardLaunch, dashboard_main, page_url
-from core.messages import Command, Control
 from agent.sections import AppConfig
-from core.component import RunContext
+from ecas.core.bus import stage_address
+from ecas.core.component import RunContext
+from ecas.core.messages import Command, Control
 
 log = logging.getLogger(DASHBOARD)
 
@@ -29,13 +28,17 @@ class DashboardProcess:
         self.stop_requested = False
 
     @classmethod
-    def start(cls, app: AppConfig, run: RunContext, ipc_dir: Path) -> Optional["DashboardProcess"]:
+    def start(cls, app: AppConfig, run: RunContext, ipc_dir: Path) -> DashboardProcess | None:
         cfg = app.dashboard
         if not cfg.enabled:
             return None
         if not cfg.loopback_only:
-            log.warning("the dashboard listens on %s:%d: anyone who can reach this machine can watch the "
-                        "conversation and start or stop the agent", cfg.host, cfg.port)
+            log.warning(
+                "the dashboard listens on %s:%d: anyone who can reach this machine can watch the "
+                "conversation and start or stop the agent",
+                cfg.host,
+                cfg.port,
+            )
         launch = DashboardLaunch(app, run, ipc_dir)
         process = mp.get_context("spawn").Process(target=dashboard_main, args=(launch,), name=DASHBOARD)
         process.start()

@@ -2,7 +2,7 @@
 
 The page captures the microphone (getUserMedia, with the browser's own echo cancellation), resamples it to
 24 kHz and sends int16 chunks over its WebSocket; the dashboard process publishes each as a `MicAudio` message
-on the bus (`core.messages`); the io stage's `BrowserMicSource` subscribes to it, counts the chunks lost on the
+on the bus (`ecas.core.messages`); the io stage's `BrowserMicSource` subscribes to it, counts the chunks lost on the
 way (gaps in their sequence numbers) and turns them into one 1920-sample block per step, in real time, with a
 small jitter buffer. While no page sends audio, the source delivers silence on time, so the loop runs (and the
 avatar idles) before anyone speaks.
@@ -12,15 +12,14 @@ from __future__ import annotations
 
 import collections
 import time
-from typing import Optional
 
 import numpy as np
 import zmq
 
-from core.bus import Subscriber
-from core.component import RunContext
-from core.messages import MicAudio
-from core.timing import STEP_NS, STEP_SAMPLES
+from ecas.core.bus import Subscriber
+from ecas.core.component import RunContext
+from ecas.core.messages import MicAudio
+from ecas.core.timing import STEP_NS, STEP_SAMPLES
 
 PRIME_STEPS = 2  # buffered steps before browser audio plays out (absorbs the page's chunking and jitter)
 MAX_BUFFER_STEPS = 8  # beyond this the oldest audio is dropped and counted (the page ran ahead)
@@ -36,7 +35,7 @@ class BrowserMicSource:
         self.buffer: collections.deque[np.ndarray] = collections.deque()  # float32 chunks, oldest first
         self.buffered = 0  # samples in `buffer`
         self.primed = False
-        self.next_due_ns: Optional[int] = None
+        self.next_due_ns: int | None = None
         self.dropped_samples = 0
         self.underruns = 0
         self.received_samples = 0
@@ -45,7 +44,7 @@ class BrowserMicSource:
     def exhausted(self) -> bool:
         return False  # like a microphone: the run ends on Stop or Ctrl-C
 
-    def next_block(self, timeout_s: float) -> Optional[tuple[np.ndarray, Optional[int]]]:
+    def next_block(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
         now = time.monotonic_ns()
         if self.next_due_ns is None:
             self.next_due_ns = now + STEP_NS
@@ -89,7 +88,7 @@ class BrowserMicSource:
         while filled < STEP_SAMPLES and self.buffer:
             chunk = self.buffer[0]
             n = min(STEP_SAMPLES - filled, chunk.size)
-            block[filled:filled + n] = chunk[:n]
+            block[filled : filled + n] = chunk[:n]
             filled += n
             self.buffered -= n
             if n == chunk.size:
@@ -102,9 +101,13 @@ class BrowserMicSource:
         return block
 
     def counters(self) -> dict[str, int]:
-        return {"mic_received_samples": self.received_samples, "mic_dropped_samples": self.dropped_samples,
-                "mic_underruns": self.underruns, "mic_lost_chunks": self.sub.lost,
-                "mic_bad_chunks": self.sub.decode_errors}
+        return {
+            "mic_received_samples": self.received_samples,
+            "mic_dropped_samples": self.dropped_samples,
+            "mic_underruns": self.underruns,
+            "mic_lost_chunks": self.sub.lost,
+            "mic_bad_chunks": self.sub.decode_errors,
+        }
 
     def close(self) -> None:
         self.sub.close()

@@ -21,14 +21,24 @@ import numpy as np
 import zmq
 
 from agent.clock import ClockSync
-from agent.dashboard.events import (BINARY_AUDIO, BINARY_FRAME, LatencyMeter, RunState, Transcript, frame_jpeg,
-                                    hello_event, pack_binary, pcm_int16, vad_event)
+from agent.dashboard.events import (
+    BINARY_AUDIO,
+    BINARY_FRAME,
+    LatencyMeter,
+    RunState,
+    Transcript,
+    frame_jpeg,
+    hello_event,
+    pack_binary,
+    pcm_int16,
+    vad_event,
+)
 from agent.process import SupervisorWatch, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
-from core.bus import Publisher, Subscriber, stage_address
-from core.component import RunContext
-from core.messages import Command, Control, DialogueStep, Message, Metrics, MicAudio, RenderFrame
+from ecas.core.bus import Publisher, Subscriber, stage_address
+from ecas.core.component import RunContext
+from ecas.core.messages import Command, Control, DialogueStep, Message, Metrics, MicAudio, RenderFrame
 
 log = logging.getLogger("dashboard")
 
@@ -78,14 +88,24 @@ class DashboardBridge:
         self.bad_frames = 0
 
     def snapshot(self) -> list[dict]:
-        return [hello_event(self.pipeline, self.live, self.session, self.cfg.browser_mic), self.run_state.event(),
-                *self.transcript.snapshot(), *self.latency.snapshot(), self.counters_event()]
+        return [
+            hello_event(self.pipeline, self.live, self.session, self.cfg.browser_mic),
+            self.run_state.event(),
+            *self.transcript.snapshot(),
+            *self.latency.snapshot(),
+            self.counters_event(),
+        ]
 
     def counters_event(self) -> dict:
-        own = {"received_frames": self.frames_in, "dropped": self.sub.dropped, "lost": self.sub.lost,
-               "decode_errors": self.sub.decode_errors, "bad_frames": self.bad_frames,
-               "mic_chunks": self.mic_chunks,
-               **(self.hub.counters() if self.hub else {})}
+        own = {
+            "received_frames": self.frames_in,
+            "dropped": self.sub.dropped,
+            "lost": self.sub.lost,
+            "decode_errors": self.sub.decode_errors,
+            "bad_frames": self.bad_frames,
+            "mic_chunks": self.mic_chunks,
+            **(self.hub.counters() if self.hub else {}),
+        }
         return self.run_state.counters_event(own)
 
     def command(self, name: str) -> None:
@@ -135,8 +155,13 @@ class DashboardBridge:
         self.hub.broadcast_frame(pack_binary(BINARY_FRAME, msg.step, msg.frame_index, jpeg))
 
     def heartbeat(self) -> None:
-        self.pub.send(Control(command=Command.HEARTBEAT, session=self.session,
-                              detail={"state": "running", "counters": self.counters_event()["dashboard"]}))
+        self.pub.send(
+            Control(
+                command=Command.HEARTBEAT,
+                session=self.session,
+                detail={"state": "running", "counters": self.counters_event()["dashboard"]},
+            )
+        )
 
     def close(self) -> None:
         self.pub.close()
@@ -192,13 +217,14 @@ def page_url(host: str, port: int, tls: bool = False) -> str:
 
 def dashboard_main(launch: DashboardLaunch) -> None:
     """The process entry point (multiprocessing spawn target)."""
-    from core.threads import limit_threads
+    from ecas.core.threads import limit_threads
 
     supervisor = SupervisorWatch(launch.ipc_dir)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group; the supervisor decides
     redirect_output(launch.log_path)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
-                        format="%(asctime)s dashboard %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO, stream=sys.stderr, format="%(asctime)s dashboard %(levelname)s %(name)s: %(message)s"
+    )
     limit_threads()
     try:
         asyncio.run(serve(launch, supervisor))

@@ -16,8 +16,8 @@ import json
 import logging
 import ssl
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Callable, Iterable, Optional
 from urllib.parse import urlsplit
 
 from aiohttp import WSCloseCode, WSMsgType, web
@@ -45,7 +45,7 @@ class Page:
         self.skipped_frames = 0
         self.wake = asyncio.Event()
         self.sending = False  # a batch of messages is on its way out
-        self.reader: Optional[asyncio.Future] = None  # reads the page's messages until it closes or the run ends
+        self.reader: asyncio.Future | None = None  # reads the page's messages until it closes or the run ends
         self.finished = asyncio.Event()  # its connection is over
 
     def push_event(self, text: str) -> None:
@@ -90,12 +90,16 @@ class Page:
 class Hub:
     """Fans events and frames out to every open page; passes the pages' commands to `on_command`."""
 
-    def __init__(self, snapshot: Callable[[], Iterable[Event]], on_command: Callable[[str], None],
-                 on_mic: Optional[Callable[[bytes], None]] = None):
+    def __init__(
+        self,
+        snapshot: Callable[[], Iterable[Event]],
+        on_command: Callable[[str], None],
+        on_mic: Callable[[bytes], None] | None = None,
+    ):
         self.snapshot = snapshot
         self.on_command = on_command
         self.on_mic = on_mic  # None: no browser microphone in this run
-        self.mic_page: Optional[Page] = None
+        self.mic_page: Page | None = None
         self.pages: set[Page] = set()
         self.skipped_frames_closed = 0  # frames skipped by pages that have since closed
 
@@ -125,8 +129,12 @@ class Hub:
         while not all(page.flushed for page in self.pages) and time.monotonic() < deadline:
             await asyncio.sleep(0.01)
         behind = sum(not page.flushed for page in self.pages)
-        log.info("last event %s sent to %d page(s)%s", event.get("phase", event.get("type")),
-                 len(self.pages) - behind, f"; {behind} still behind after {timeout_s:g} s" if behind else "")
+        log.info(
+            "last event %s sent to %d page(s)%s",
+            event.get("phase", event.get("type")),
+            len(self.pages) - behind,
+            f"; {behind} still behind after {timeout_s:g} s" if behind else "",
+        )
 
     async def close_pages(self, timeout_s: float = 1.0) -> None:
         """Close every page's WebSocket (they would otherwise hold the server's shutdown): each page's handler stops
@@ -142,8 +150,10 @@ class Hub:
             await asyncio.wait([asyncio.ensure_future(page.finished.wait()) for page in pages], timeout=timeout_s)
 
     def counters(self) -> dict[str, int]:
-        return {"pages": len(self.pages),
-                "skipped_frames": self.skipped_frames_closed + sum(p.skipped_frames for p in self.pages)}
+        return {
+            "pages": len(self.pages),
+            "skipped_frames": self.skipped_frames_closed + sum(p.skipped_frames for p in self.pages),
+        }
 
     async def websocket(self, request: web.Request) -> web.WebSocketResponse:
         if not same_origin(request):
@@ -199,7 +209,6 @@ class Hub:
         else:
             log.warning("ignored an unknown page message: %.80r", text)
 
-
     def _claim_mic(self, page: Page, enabled: bool) -> None:
         if not enabled:
             if self.mic_page is page:
@@ -216,7 +225,7 @@ class Hub:
     def _on_page_audio(self, page: Page, data: bytes) -> None:
         if page is not self.mic_page or len(data) <= BINARY_HEADER.size or data[0] != BINARY_MIC:
             return
-        payload = data[BINARY_HEADER.size:]
+        payload = data[BINARY_HEADER.size :]
         if len(payload) % 2 == 0:
             self.on_mic(payload)
 
@@ -243,8 +252,9 @@ def make_app(hub: Hub) -> web.Application:
     return app
 
 
-async def start_server(app: web.Application, host: str, port: int,
-                       tls: Optional[tuple[str, str]] = None) -> tuple[web.AppRunner, int]:
+async def start_server(
+    app: web.Application, host: str, port: int, tls: tuple[str, str] | None = None
+) -> tuple[web.AppRunner, int]:
     """Listen on host:port (https with `tls` = (cert, key) PEM paths); returns the runner and the bound port
     (port 0: any free one)."""
     ssl_context = None
@@ -258,7 +268,9 @@ async def start_server(app: web.Application, host: str, port: int,
         await site.start()
     except OSError as e:
         await runner.cleanup()
-        raise OSError(f"dashboard: cannot listen on {host}:{port} ({e.strerror or e}); "
-                      f"set another dashboard.port or stop what uses it") from None
+        raise OSError(
+            f"dashboard: cannot listen on {host}:{port} ({e.strerror or e}); "
+            f"set another dashboard.port or stop what uses it"
+        ) from None
     bound = runner.addresses[0][1]
     return runner, bound

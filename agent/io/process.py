@@ -2,19 +2,19 @@
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 from agent.io.sources import MicSource, ReplaySource
 from agent.io.speaker import Speaker
-from core.messages import DialogueStep, Message
 from agent.sections import IoConfig
-from core.component import RunContext
+from ecas.core.component import RunContext
+from ecas.core.messages import DialogueStep, Message
 
 
 class IoComponent:
     """Receives the agent's steps and plays them when a speaker is configured."""
 
-    def __init__(self, speaker: Optional[Speaker]):
+    def __init__(self, speaker: Speaker | None):
         self.speaker = speaker
 
     def handle(self, msg: Message) -> Sequence[Message]:

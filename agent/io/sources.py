@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import queue
 import time
-from typing import Optional
 
 import numpy as np
 
-from core.audio_file import load_audio
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from ecas.core.audio_file import load_audio
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 
 class NoAudioDevice(RuntimeError):
@@ -35,18 +34,18 @@ class ReplaySource:
         self.index = 0
 
     @classmethod
-    def from_file(cls, path: str, tail_silence_s: float) -> "ReplaySource":
+    def from_file(cls, path: str, tail_silence_s: float) -> ReplaySource:
         return cls(load_audio(path, SAMPLE_RATE_HZ), tail_silence_s)
 
     @classmethod
-    def silence(cls, duration_s: float) -> "ReplaySource":
+    def silence(cls, duration_s: float) -> ReplaySource:
         return cls(np.zeros(0, np.float32), duration_s)
 
     @property
     def exhausted(self) -> bool:
         return self.index >= len(self.blocks)
 
-    def next_block(self, timeout_s: float) -> Optional[tuple[np.ndarray, Optional[int]]]:
+    def next_block(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
         block = self.blocks[self.index]
         self.index += 1
         return block, None
@@ -63,14 +62,15 @@ def _sounddevice():
     return sounddevice
 
 
-def check_input_device(device: Optional[str]) -> None:
+def check_input_device(device: str | None) -> None:
     """Fail early, with a one-line hint, when there is no microphone."""
     sd = _sounddevice()
     try:
         sd.check_input_settings(device=device, samplerate=SAMPLE_RATE_HZ, channels=1, dtype="float32")
     except Exception as e:
-        raise NoAudioDevice(f"no usable audio input device ({str(e).splitlines()[0]}); "
-                            "use --replay FILE to replay a recording instead") from None
+        raise NoAudioDevice(
+            f"no usable audio input device ({str(e).splitlines()[0]}); use --replay FILE to replay a recording instead"
+        ) from None
 
 
 class MicSource:
@@ -79,11 +79,17 @@ class MicSource:
     paced = True
     exhausted = False
 
-    def __init__(self, device: Optional[str]):
+    def __init__(self, device: str | None):
         sd = _sounddevice()
         self.blocks: queue.Queue = queue.Queue()
-        self.stream = sd.InputStream(samplerate=SAMPLE_RATE_HZ, blocksize=STEP_SAMPLES, channels=1,
-                                     dtype="float32", device=device, callback=self._on_block)
+        self.stream = sd.InputStream(
+            samplerate=SAMPLE_RATE_HZ,
+            blocksize=STEP_SAMPLES,
+            channels=1,
+            dtype="float32",
+            device=device,
+            callback=self._on_block,
+        )
         self.stream.start()
 
     def _on_block(self, data, frames, stream_time, status) -> None:
@@ -92,7 +98,7 @@ class MicSource:
         last_sample_ns = now_ns - int(age_s * 1e9) + int((frames - 1) / SAMPLE_RATE_HZ * 1e9)
         self.blocks.put((data[:, 0].copy(), min(now_ns, last_sample_ns)))
 
-    def next_block(self, timeout_s: float) -> Optional[tuple[np.ndarray, Optional[int]]]:
+    def next_block(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
         try:
             return self.blocks.get(timeout=timeout_s)
         except queue.Empty:

@@ -3,24 +3,29 @@
 from __future__ import annotations
 
 import threading
-from typing import Optional
 
 import numpy as np
 
 from agent.io.sources import _sounddevice
-from core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 MAX_BUFFER_STEPS = 8  # 640 ms: beyond this the oldest audio is dropped to stay live
 
 
 class Speaker:
-    def __init__(self, device: Optional[str]):
+    def __init__(self, device: str | None):
         sd = _sounddevice()
         self._buffer = np.zeros(0, np.float32)
         self._lock = threading.Lock()
         self.dropped_samples = 0
-        self.stream = sd.OutputStream(samplerate=SAMPLE_RATE_HZ, blocksize=STEP_SAMPLES // 2, channels=1,
-                                      dtype="float32", device=device, callback=self._fill)
+        self.stream = sd.OutputStream(
+            samplerate=SAMPLE_RATE_HZ,
+            blocksize=STEP_SAMPLES // 2,
+            channels=1,
+            dtype="float32",
+            device=device,
+            callback=self._fill,
+        )
         self.stream.start()
 
     def play(self, pcm: np.ndarray) -> None:

@@ -11,18 +11,14 @@ relative to the chunk's first frame and yaw-aligned.
 
 from __future__ import annotations
 
-from typing import Optional
-
 import numpy as np
 import torch
 
-from core.body import (CONTACT_JOINTS, JAW_JOINT, LOWER_JOINTS, NUM_EXPRESSIONS, NUM_JOINTS,
-                       UPPER_JOINTS)
-from core.timing import MOTION_FPS
+from ecas.core.body import CONTACT_JOINTS, JAW_JOINT, LOWER_JOINTS, NUM_EXPRESSIONS, NUM_JOINTS, UPPER_JOINTS
+from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import foot_contacts, integrate_velocity, root_velocity
 from gesture.body.rotation import axis_angle_to_rot6d, rot6d_to_axis_angle
 from gesture.body.skeleton import Skeleton, forward_kinematics
-
 
 UPPER_DIM = 6 * len(UPPER_JOINTS)  # 258
 LOWER_ROT_DIM = 6 * len(LOWER_JOINTS)  # 54
@@ -37,9 +33,7 @@ FACE_JAW_SLICE = slice(0, 6)
 FACE_EXPRESSION_SLICE = slice(6, FACE_DIM)
 
 
-def contacts_from_motion(
-    poses_aa: np.ndarray, trans: np.ndarray, skeleton: Optional[Skeleton] = None
-) -> np.ndarray:
+def contacts_from_motion(poses_aa: np.ndarray, trans: np.ndarray, skeleton: Skeleton | None = None) -> np.ndarray:
     """(T, 4) foot contacts of joints 7, 8, 10, 11 from a zero-beta FK (our skeleton by default)."""
     skeleton = skeleton or Skeleton.default()
     with torch.no_grad():
@@ -66,7 +60,7 @@ def motion_to_features(
     trans: np.ndarray,
     expressions: np.ndarray,
     fps: float = MOTION_FPS,
-    skeleton: Optional[Skeleton] = None,
+    skeleton: Skeleton | None = None,
 ) -> dict[str, np.ndarray]:
     """SMPL-X motion -> {"upper": (T, 258), "lower": (T, 61), "face": (T, 106)} float32."""
     poses_aa, trans, expressions = (np.asarray(x) for x in (poses_aa, trans, expressions))

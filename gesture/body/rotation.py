@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, Optional, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -136,9 +137,15 @@ def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
     """(..., 4) -> (..., 3, 3); q need not be unit length."""
     w, x, y, z = _safe_normalize(q).unbind(-1)
     rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
     ]
     return torch.stack(rows, -1).reshape(q.shape[:-1] + (3, 3))
 
@@ -285,11 +292,11 @@ def _linear(x: np.ndarray, pos: np.ndarray) -> np.ndarray:
 
 def resample_motion(
     poses_aa: np.ndarray,
-    trans: Optional[np.ndarray],
-    expressions: Optional[np.ndarray],
+    trans: np.ndarray | None,
+    expressions: np.ndarray | None,
     src_fps: float,
     dst_fps: float,
-) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Resample a motion in time: slerp for joint rotations, linear for translation and expressions.
 
     poses_aa (T, J, 3) axis-angle, trans (T, 3), expressions (T, E) -> the same at ``dst_fps``

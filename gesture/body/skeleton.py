@@ -20,22 +20,40 @@ import pickle
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Union
 
 import numpy as np
 import torch
 
-from core.body import NUM_JOINTS
-from core.errors import DataError
+from ecas.core.body import NUM_JOINTS
+from ecas.core.errors import DataError
 from gesture.body.rotation import axis_angle_to_matrix
 
-
 _BODY_NAMES = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
-    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck",
-    "left_collar", "right_collar", "head", "left_shoulder", "right_shoulder",
-    "left_elbow", "right_elbow", "left_wrist", "right_wrist",
-    "jaw", "left_eye_smplhf", "right_eye_smplhf",
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "jaw",
+    "left_eye_smplhf",
+    "right_eye_smplhf",
 )
 _FINGERS = ("index", "middle", "pinky", "ring", "thumb")
 _HAND_NAMES = tuple(f"{side}_{finger}{k}" for side in ("left", "right") for finger in _FINGERS for k in (1, 2, 3))
@@ -126,12 +144,12 @@ class Skeleton:
         return len(self.names)
 
     @staticmethod
-    def default() -> "Skeleton":
+    def default() -> Skeleton:
         """The built-in average-adult skeleton (no licensed files needed)."""
         return Skeleton(JOINT_NAMES, PARENTS, _default_rest_joints_m())
 
     @staticmethod
-    def from_smplx_model(path: Union[str, Path], betas: Optional[np.ndarray] = None) -> "Skeleton":
+    def from_smplx_model(path: str | Path, betas: np.ndarray | None = None) -> Skeleton:
         """Rest joints of a real SMPL-X model file (.npz or .pkl) with optional shape ``betas``."""
         model = read_smplx_file(Path(path))
         v = _model_array(model, "v_template", path)  # (V, 3)
@@ -147,7 +165,9 @@ class Skeleton:
             regressor = regressor.toarray()
         regressor = np.asarray(regressor, dtype=np.float64)
         if regressor.shape != (NUM_JOINTS, v.shape[0]):
-            raise SkeletonError(path, f"'J_regressor' has shape {regressor.shape}, expected ({NUM_JOINTS}, {v.shape[0]})")
+            raise SkeletonError(
+                path, f"'J_regressor' has shape {regressor.shape}, expected ({NUM_JOINTS}, {v.shape[0]})"
+            )
         parents = PARENTS
         if "kintree_table" in model:
             table = np.asarray(model["kintree_table"]).astype(np.int64)
@@ -184,7 +204,7 @@ def _model_array(model: dict, key: str, path) -> np.ndarray:
 def forward_kinematics(
     skeleton: Skeleton,
     poses: torch.Tensor,
-    trans: Optional[torch.Tensor] = None,
+    trans: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched FK.
 
@@ -232,7 +252,7 @@ def skinning_transforms(skeleton: Skeleton, global_transforms: torch.Tensor) -> 
 
 
 def forward_kinematics_np(
-    skeleton: Skeleton, poses: np.ndarray, trans: Optional[np.ndarray] = None
+    skeleton: Skeleton, poses: np.ndarray, trans: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """numpy version of ``forward_kinematics`` (float32 in -> float32 out)."""
     t = None if trans is None else torch.from_numpy(np.ascontiguousarray(trans))

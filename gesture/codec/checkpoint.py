@@ -16,7 +16,7 @@ import torch
 import yaml
 from safetensors.torch import load_file, save_file
 
-from core.config import load_yaml
+from ecas.core.config import load_yaml
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecFileConfig, codec_file_config_from_dict
 from gesture.codec.model import GestureCodec

@@ -1,7 +1,7 @@
-"""Options of the gesture codecs (`codec:` and `train:` sections of configs/codec/*.yaml).
+"""Options of the gesture codecs (`codec:` and `train:` sections of ecas/configs/codec/*.yaml).
 
 `load_codec_config(path)` returns a `CodecFileConfig`; `CodecConfig.region(name)` gives the sizes of
-one region's codec. configs/codec/reference.yaml holds the paper's sizes, small.yaml a CPU size.
+one region's codec. ecas/configs/codec/reference.yaml holds the paper's sizes, small.yaml a CPU size.
 Latents stay float32 before the RVQ (the reference's codec training cast them to bf16; its LM
 training and demo used fp32, as we do everywhere).
 """
@@ -11,8 +11,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from core.body import REGIONS
-from core.config import ConfigError, build_dataclass, load_yaml
+from ecas.core.body import REGIONS
+from ecas.core.config import ConfigError, build_dataclass, load_yaml
 
 
 def _check_positive(path: str, **values: float) -> None:
@@ -69,16 +69,28 @@ class CodecConfig:
     regions: dict[str, RegionSizes] = field(default_factory=_reference_regions)
 
     def __post_init__(self) -> None:
-        _check_positive("codec", latent_dim=self.latent_dim, n_filters=self.n_filters, compress=self.compress,
-                        dilation_base=self.dilation_base, kernel_size=self.kernel_size,
-                        residual_kernel_size=self.residual_kernel_size, downsample_ratio=self.downsample_ratio,
-                        dim_feedforward=self.dim_feedforward, context_steps=self.context_steps,
-                        rope_period=self.rope_period, norm_eps=self.norm_eps, codebook_size=self.codebook_size,
-                        codebook_dim=self.codebook_dim, dead_code_every_steps=self.dead_code_every_steps)
+        _check_positive(
+            "codec",
+            latent_dim=self.latent_dim,
+            n_filters=self.n_filters,
+            compress=self.compress,
+            dilation_base=self.dilation_base,
+            kernel_size=self.kernel_size,
+            residual_kernel_size=self.residual_kernel_size,
+            downsample_ratio=self.downsample_ratio,
+            dim_feedforward=self.dim_feedforward,
+            context_steps=self.context_steps,
+            rope_period=self.rope_period,
+            norm_eps=self.norm_eps,
+            codebook_size=self.codebook_size,
+            codebook_dim=self.codebook_dim,
+            dead_code_every_steps=self.dead_code_every_steps,
+        )
         if self.residual_layers < 0 or self.kmeans_iters < 0:
             raise ConfigError("codec.residual_layers and codec.kmeans_iters: must be >= 0")
-        _check_rate("codec", dropout=self.dropout, ema_decay=self.ema_decay,
-                    no_quantization_rate=self.no_quantization_rate)
+        _check_rate(
+            "codec", dropout=self.dropout, ema_decay=self.ema_decay, no_quantization_rate=self.no_quantization_rate
+        )
         if self.n_filters % self.compress:
             raise ConfigError(f"codec.compress: must divide n_filters {self.n_filters}, got {self.compress}")
         missing = [r for r in REGIONS if r not in self.regions]
@@ -87,11 +99,14 @@ class CodecConfig:
         for name, sizes in self.regions.items():
             if name not in REGIONS:
                 raise ConfigError(f"codec.regions.{name}: unknown region (known: {', '.join(REGIONS)})")
-            _check_positive(f"codec.regions.{name}", n_q=sizes.n_q, num_layers=sizes.num_layers,
-                            num_heads=sizes.num_heads)
+            _check_positive(
+                f"codec.regions.{name}", n_q=sizes.n_q, num_layers=sizes.num_layers, num_heads=sizes.num_heads
+            )
             if self.latent_dim % sizes.num_heads or (self.latent_dim // sizes.num_heads) % 2:
-                raise ConfigError(f"codec.regions.{name}.num_heads: latent_dim {self.latent_dim} must split "
-                                  f"into an even head dim, got {sizes.num_heads} heads")
+                raise ConfigError(
+                    f"codec.regions.{name}.num_heads: latent_dim {self.latent_dim} must split "
+                    f"into an even head dim, got {sizes.num_heads} heads"
+                )
 
     def region(self, name: str) -> RegionSizes:
         if name not in self.regions:
@@ -126,15 +141,27 @@ class CodecTrainConfig:
     joint_position_weight: float = 10.0  # the reference's weight of the FK joint-position MSE
 
     def __post_init__(self) -> None:
-        _check_positive("train", lr=self.lr, grad_clip=self.grad_clip, batch_size=self.batch_size,
-                        window_frames=self.window_frames, lr_step_every=self.lr_step_every, steps=self.steps,
-                        checkpoint_every=self.checkpoint_every, speed_floor_mps=self.speed_floor_mps)
+        _check_positive(
+            "train",
+            lr=self.lr,
+            grad_clip=self.grad_clip,
+            batch_size=self.batch_size,
+            window_frames=self.window_frames,
+            lr_step_every=self.lr_step_every,
+            steps=self.steps,
+            checkpoint_every=self.checkpoint_every,
+            speed_floor_mps=self.speed_floor_mps,
+        )
         _check_rate("train", random_crop_rate=self.random_crop_rate)
         if self.window_frames % 2:
             raise ConfigError(f"train.window_frames: must be even (2 frames per step), got {self.window_frames}")
-        non_negative = {"commitment_ramp_steps": self.commitment_ramp_steps, "holdout_seconds": self.holdout_seconds,
-                        "log_speed_weight": self.log_speed_weight, "expression_mse_weight": self.expression_mse_weight,
-                        "joint_position_weight": self.joint_position_weight}
+        non_negative = {
+            "commitment_ramp_steps": self.commitment_ramp_steps,
+            "holdout_seconds": self.holdout_seconds,
+            "log_speed_weight": self.log_speed_weight,
+            "expression_mse_weight": self.expression_mse_weight,
+            "joint_position_weight": self.joint_position_weight,
+        }
         for name, value in non_negative.items():
             if value < 0:
                 raise ConfigError(f"train.{name}: must be >= 0, got {value}")
@@ -142,7 +169,7 @@ class CodecTrainConfig:
 
 @dataclass(frozen=True)
 class CodecFileConfig:
-    """A configs/codec/*.yaml file: the model sizes and the training recipe."""
+    """A ecas/configs/codec/*.yaml file: the model sizes and the training recipe."""
 
     codec: CodecConfig = field(default_factory=CodecConfig)
     train: CodecTrainConfig = field(default_factory=CodecTrainConfig)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.timing import MOTION_FPS
+from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
 from gesture.body.regions import motion_to_features
 from gesture.data.beat2 import read_motion
@@ -35,14 +35,16 @@ class MotionSequence:
     def num_frames(self) -> int:
         return len(self.poses)
 
-    def window(self, first: int, length: int) -> "MotionSequence":
+    def window(self, first: int, length: int) -> MotionSequence:
         cut = slice(first, first + length)
         return MotionSequence({k: v[cut] for k, v in self.features.items()}, self.poses[cut])
 
 
 def _sequence_from_arrays(poses: np.ndarray, trans: np.ndarray, expressions: np.ndarray) -> MotionSequence:
     features = motion_to_features(poses, trans, expressions, MOTION_FPS)
-    return MotionSequence({k: torch.from_numpy(v) for k, v in features.items()}, torch.from_numpy(np.asarray(poses, np.float32)))
+    return MotionSequence(
+        {k: torch.from_numpy(v) for k, v in features.items()}, torch.from_numpy(np.asarray(poses, np.float32))
+    )
 
 
 def load_motion_splits(path: str | Path, holdout_seconds: float) -> tuple[list[MotionSequence], list[MotionSequence]]:
@@ -70,8 +72,14 @@ def _chunks(cache_dir: Path, splits: tuple[str, ...]) -> list[MotionSequence]:
     return [MotionSequence({r: it[r].float() for r in ("upper", "lower", "face")}, it["poses"].float()) for it in items]
 
 
-def sample_batch(sequences: list[MotionSequence], region: str, batch_size: int, window_frames: int,
-                 random_crop_rate: float, generator: torch.Generator) -> torch.Tensor:
+def sample_batch(
+    sequences: list[MotionSequence],
+    region: str,
+    batch_size: int,
+    window_frames: int,
+    random_crop_rate: float,
+    generator: torch.Generator,
+) -> torch.Tensor:
     """(B, L, nfeats) random windows; L is `window_frames`, or with probability `random_crop_rate` a
     random even length in [2, window_frames] (one length per batch). Windows never exceed a sequence."""
     longest = max(s.num_frames for s in sequences) // 2 * 2
@@ -84,5 +92,5 @@ def sample_batch(sequences: list[MotionSequence], region: str, batch_size: int, 
     windows = []
     for i in picks:
         first = int(torch.randint(usable[i].num_frames - length + 1, (), generator=generator))
-        windows.append(usable[i].features[region][first:first + length])
+        windows.append(usable[i].features[region][first : first + length])
     return torch.stack(windows)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from core.body import JAW_JOINT, LOWER_JOINTS, REGION_JOINTS
+from ecas.core.body import JAW_JOINT, LOWER_JOINTS, REGION_JOINTS
 from gesture.body.regions import FACE_JAW_SLICE, LOWER_ROT_SLICE
 from gesture.body.rotation import geodesic_angle, rot6d_to_axis_angle, rot6d_to_matrix
 from gesture.body.skeleton import Skeleton, forward_kinematics

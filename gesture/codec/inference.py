@@ -22,8 +22,8 @@ import copy
 from gesture.codec.model import GestureCodec
 from gesture.codec.step_seanet import pack_convs
 from gesture.codec.step_transformer import StepTransformer
-from gesture.nn.weights import WEIGHT_FORMS, check_form
 from gesture.nn import StreamingModule
+from gesture.nn.weights import WEIGHT_FORMS, check_form
 
 INFERENCE_DTYPES = WEIGHT_FORMS
 

@@ -28,10 +28,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from core.body import CONTACT_JOINTS, JAW_JOINT, LOWER_JOINTS, NUM_JOINTS, UPPER_BODY_JOINTS, UPPER_JOINTS
-from core.timing import MOTION_FPS
-from gesture.body.regions import (FACE_EXPRESSION_SLICE, FACE_JAW_SLICE, LOWER_CONTACT_SLICE, LOWER_ROT_SLICE,
-                                  LOWER_VELOCITY_SLICE)
+from ecas.core.body import CONTACT_JOINTS, JAW_JOINT, LOWER_JOINTS, NUM_JOINTS, UPPER_BODY_JOINTS, UPPER_JOINTS
+from ecas.core.timing import MOTION_FPS
+from gesture.body.regions import (
+    FACE_EXPRESSION_SLICE,
+    FACE_JAW_SLICE,
+    LOWER_CONTACT_SLICE,
+    LOWER_ROT_SLICE,
+    LOWER_VELOCITY_SLICE,
+)
 from gesture.body.rotation import geodesic_angle, rot6d_to_matrix
 from gesture.body.skeleton import Skeleton, forward_kinematics
 
@@ -73,12 +78,13 @@ def _dynamics(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return _mse(v_p, v_t) + _mse(velocity(v_p), velocity(v_t)) + _mse(laplacian(pred), laplacian(target))
 
 
-def rotation_terms(pred6d: torch.Tensor, gt6d: torch.Tensor, joint_weights: torch.Tensor,
-                   laplacian_weight: float) -> dict[str, torch.Tensor]:
+def rotation_terms(
+    pred6d: torch.Tensor, gt6d: torch.Tensor, joint_weights: torch.Tensor, laplacian_weight: float
+) -> dict[str, torch.Tensor]:
     """pred6d, gt6d (B, T, J, 6); joint_weights (J,)."""
     w = joint_weights / joint_weights.mean()
     m_p, m_t = rot6d_to_matrix(pred6d), rot6d_to_matrix(gt6d)  # (B, T, J, 3, 3)
-    weighted = lambda err: (err.flatten(3).mean(-1) * w).mean() if err.numel() else err.new_zeros(())  # noqa: E731
+    weighted = lambda err: (err.flatten(3).mean(-1) * w).mean() if err.numel() else err.new_zeros(())
     return {
         "rot6d": weighted((pred6d - gt6d) ** 2),
         "rot6d_laplacian": laplacian_weight * weighted((laplacian(pred6d) - laplacian(gt6d)) ** 2),
@@ -100,19 +106,26 @@ def position_terms(pred_joints: torch.Tensor, gt_joints: torch.Tensor, joints_we
     }
 
 
-def log_speed_error(pred_joints: torch.Tensor, gt_joints: torch.Tensor, floor_mps: float,
-                    fps: float = MOTION_FPS) -> torch.Tensor:
+def log_speed_error(
+    pred_joints: torch.Tensor, gt_joints: torch.Tensor, floor_mps: float, fps: float = MOTION_FPS
+) -> torch.Tensor:
     """MSE of log sqrt(|v|^2 + floor^2) between (B, T, J, 3) joint tracks in metres (v in m/s)."""
-    log_speed = lambda j: 0.5 * torch.log(velocity(j).mul(fps).pow(2).sum(-1) + floor_mps**2)  # noqa: E731
+    log_speed = lambda j: 0.5 * torch.log(velocity(j).mul(fps).pow(2).sum(-1) + floor_mps**2)
     return _mse(log_speed(pred_joints), log_speed(gt_joints))
 
 
 class RegionLoss(nn.Module):
     """`loss(pred, target) -> dict` of weighted terms and their sum under "total"."""
 
-    def __init__(self, region: str, skeleton: Skeleton | None = None, log_speed_weight: float = 0.0,
-                 speed_floor_mps: float = 0.005, expression_mse_weight: float = 0.0,
-                 joint_position_weight: float = 10.0) -> None:
+    def __init__(
+        self,
+        region: str,
+        skeleton: Skeleton | None = None,
+        log_speed_weight: float = 0.0,
+        speed_floor_mps: float = 0.005,
+        expression_mse_weight: float = 0.0,
+        joint_position_weight: float = 10.0,
+    ) -> None:
         super().__init__()
         if region not in ("upper", "lower", "face"):
             raise ValueError(f"region must be upper, lower or face, got {region!r}")
@@ -162,7 +175,8 @@ class RegionLoss(nn.Module):
         if self.log_speed_weight:
             beat = list(UPPER_BODY_JOINTS)
             terms["log_speed"] = self.log_speed_weight * log_speed_error(
-                pred_joints[:, :, beat], gt_joints[:, :, beat], self.speed_floor_mps)
+                pred_joints[:, :, beat], gt_joints[:, :, beat], self.speed_floor_mps
+            )
         return terms
 
     def _lower_terms(self, pred, target, p6, t6) -> dict[str, torch.Tensor]:
@@ -173,12 +187,14 @@ class RegionLoss(nn.Module):
         feet_speed2 = velocity(joints_p[:, :, list(CONTACT_JOINTS)]).pow(2).sum(-1)  # (B, T-1, 4)
         planted = (contact_p[:, :-1] > CONTACT_ON).to(feet_speed2.dtype).detach()
         terms = self._position_terms(self.joint_positions(p6), self.joint_positions(t6))
-        terms.update({
-            "contacts": 2 * _mse(contact_p, target[..., LOWER_CONTACT_SLICE]),
-            "root_velocity": 2 * _mse(vel_p, vel_t),
-            "root_position": 2 * _mse(pos_p, pos_t),
-            "foot_skating": 200 * (feet_speed2 * planted).mean() if feet_speed2.numel() else pred.new_zeros(()),
-        })
+        terms.update(
+            {
+                "contacts": 2 * _mse(contact_p, target[..., LOWER_CONTACT_SLICE]),
+                "root_velocity": 2 * _mse(vel_p, vel_t),
+                "root_position": 2 * _mse(pos_p, pos_t),
+                "foot_skating": 200 * (feet_speed2 * planted).mean() if feet_speed2.numel() else pred.new_zeros(()),
+            }
+        )
         return terms
 
 

@@ -39,25 +39,74 @@ class CodecOutput:
 class GestureCodec(nn.Module):
     """One region's codec. Offline methods take (B, T, nfeats) with T a multiple of `ratio`."""
 
-    def __init__(self, nfeats: int, *, latent_dim: int, n_filters: int, ratio: int, residual_layers: int,
-                 kernel_size: int, residual_kernel_size: int, dilation_base: int, compress: int,
-                 num_layers: int, num_heads: int, dim_feedforward: int, context_steps: int, rope_period: float,
-                 layer_scale_init: float, norm_eps: float, dropout: float, n_q: int, codebook_size: int,
-                 codebook_dim: int, ema_decay: float, kmeans_iters: int, dead_code_every_steps: int,
-                 dead_code_usage_ratio: float, no_quantization_rate: float, quantizer_dropout: bool) -> None:
+    def __init__(
+        self,
+        nfeats: int,
+        *,
+        latent_dim: int,
+        n_filters: int,
+        ratio: int,
+        residual_layers: int,
+        kernel_size: int,
+        residual_kernel_size: int,
+        dilation_base: int,
+        compress: int,
+        num_layers: int,
+        num_heads: int,
+        dim_feedforward: int,
+        context_steps: int,
+        rope_period: float,
+        layer_scale_init: float,
+        norm_eps: float,
+        dropout: float,
+        n_q: int,
+        codebook_size: int,
+        codebook_dim: int,
+        ema_decay: float,
+        kmeans_iters: int,
+        dead_code_every_steps: int,
+        dead_code_usage_ratio: float,
+        no_quantization_rate: float,
+        quantizer_dropout: bool,
+    ) -> None:
         super().__init__()
         self.nfeats, self.ratio, self.n_q, self.codebook_size = nfeats, ratio, n_q, codebook_size
-        seanet = dict(nfeats=nfeats, latent_dim=latent_dim, n_filters=n_filters, ratio=ratio,
-                      residual_layers=residual_layers, kernel_size=kernel_size,
-                      residual_kernel_size=residual_kernel_size, dilation_base=dilation_base, compress=compress)
-        transformer = dict(d_model=latent_dim, num_heads=num_heads, num_layers=num_layers,
-                           dim_feedforward=dim_feedforward, context=context_steps, rope_period=rope_period,
-                           layer_scale_init=layer_scale_init, dropout=dropout, norm_eps=norm_eps)
+        seanet = dict(
+            nfeats=nfeats,
+            latent_dim=latent_dim,
+            n_filters=n_filters,
+            ratio=ratio,
+            residual_layers=residual_layers,
+            kernel_size=kernel_size,
+            residual_kernel_size=residual_kernel_size,
+            dilation_base=dilation_base,
+            compress=compress,
+        )
+        transformer = dict(
+            d_model=latent_dim,
+            num_heads=num_heads,
+            num_layers=num_layers,
+            dim_feedforward=dim_feedforward,
+            context=context_steps,
+            rope_period=rope_period,
+            layer_scale_init=layer_scale_init,
+            dropout=dropout,
+            norm_eps=norm_eps,
+        )
         self.seanet_encoder = SEANetEncoder(**seanet)
         self.transformer_encoder = LatentTransformer(**transformer)
         self.quantizer = ResidualVectorQuantizer(
-            latent_dim, codebook_dim, n_q, codebook_size, ema_decay, kmeans_iters, dead_code_every_steps,
-            dead_code_usage_ratio, no_quantization_rate, quantizer_dropout)
+            latent_dim,
+            codebook_dim,
+            n_q,
+            codebook_size,
+            ema_decay,
+            kmeans_iters,
+            dead_code_every_steps,
+            dead_code_usage_ratio,
+            no_quantization_rate,
+            quantizer_dropout,
+        )
         self.transformer_decoder = LatentTransformer(**transformer)
         self.seanet_decoder = SEANetDecoder(**seanet)
 

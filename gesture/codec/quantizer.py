@@ -57,8 +57,15 @@ class EuclideanCodebook(nn.Module):
     """EMA codebook. Under torch.distributed, counts and sums are summed over ranks and rank 0's
     k-means initialisation and dead-code replacements are broadcast, so every rank keeps the same codes."""
 
-    def __init__(self, dim: int, codebook_size: int, decay: float, kmeans_iters: int,
-                 dead_code_every_steps: int, dead_code_usage_ratio: float) -> None:
+    def __init__(
+        self,
+        dim: int,
+        codebook_size: int,
+        decay: float,
+        kmeans_iters: int,
+        dead_code_every_steps: int,
+        dead_code_usage_ratio: float,
+    ) -> None:
         super().__init__()
         self.dim, self.codebook_size, self.decay = dim, codebook_size, decay
         self.kmeans_iters = kmeans_iters
@@ -163,18 +170,34 @@ class QuantizerOutput:
 class ResidualVectorQuantizer(nn.Module):
     """(B, D, S) latents <-> (B, n_q, S) codes through a Dq-dim residual quantizer."""
 
-    def __init__(self, dim: int, codebook_dim: int, n_q: int, codebook_size: int, ema_decay: float = 0.99,
-                 kmeans_iters: int = 50, dead_code_every_steps: int = 5, dead_code_usage_ratio: float = 0.1,
-                 no_quantization_rate: float = 0.0, quantizer_dropout: bool = False) -> None:
+    def __init__(
+        self,
+        dim: int,
+        codebook_dim: int,
+        n_q: int,
+        codebook_size: int,
+        ema_decay: float = 0.99,
+        kmeans_iters: int = 50,
+        dead_code_every_steps: int = 5,
+        dead_code_usage_ratio: float = 0.1,
+        no_quantization_rate: float = 0.0,
+        quantizer_dropout: bool = False,
+    ) -> None:
         super().__init__()
         self.n_q, self.codebook_size = n_q, codebook_size
         self.no_quantization_rate = no_quantization_rate
         self.quantizer_dropout = quantizer_dropout
         self.input_proj = nn.Conv1d(dim, codebook_dim, 1, bias=False)
         self.output_proj = nn.Conv1d(codebook_dim, dim, 1, bias=False)
-        self.vq = _ResidualVQ(n_q, dim=codebook_dim, codebook_size=codebook_size, decay=ema_decay,
-                              kmeans_iters=kmeans_iters, dead_code_every_steps=dead_code_every_steps,
-                              dead_code_usage_ratio=dead_code_usage_ratio)
+        self.vq = _ResidualVQ(
+            n_q,
+            dim=codebook_dim,
+            codebook_size=codebook_size,
+            decay=ema_decay,
+            kmeans_iters=kmeans_iters,
+            dead_code_every_steps=dead_code_every_steps,
+            dead_code_usage_ratio=dead_code_usage_ratio,
+        )
         self._projected: tuple[torch.Tensor, torch.Tensor] | None = None  # see project_codebooks
 
     @torch.no_grad()
@@ -228,7 +251,7 @@ class ResidualVectorQuantizer(nn.Module):
             raise ValueError(f"codes must be (B, K<={self.n_q}, S), got {tuple(codes.shape)}")
         if self._projected is not None:
             table, offsets = self._projected
-            rows = codes + offsets[:codes.shape[1], None]  # (B, K, S) rows of the stacked levels
+            rows = codes + offsets[: codes.shape[1], None]  # (B, K, S) rows of the stacked levels
             return F.embedding(rows, table).sum(1).transpose(1, 2)  # (B, K, S, D) -> (B, D, S)
-        summed = sum(cb.decode(codes[:, k]) for k, cb in enumerate(self._codebooks()[:codes.shape[1]]))  # (B, S, Dq)
+        summed = sum(cb.decode(codes[:, k]) for k, cb in enumerate(self._codebooks()[: codes.shape[1]]))  # (B, S, Dq)
         return F.linear(summed, self.output_proj.weight[..., 0]).transpose(1, 2)  # the 1x1 conv as a matmul

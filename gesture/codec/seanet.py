@@ -29,15 +29,27 @@ class SEANetResidualBlock(StreamingModule):
         return x + self.block(x)
 
 
-def _residual_blocks(channels: int, kernel_size: int, layers: int, dilation_base: int, compress: int) -> list[nn.Module]:
-    return [SEANetResidualBlock(channels, kernel_size, dilation_base ** i, compress) for i in range(layers)]
+def _residual_blocks(
+    channels: int, kernel_size: int, layers: int, dilation_base: int, compress: int
+) -> list[nn.Module]:
+    return [SEANetResidualBlock(channels, kernel_size, dilation_base**i, compress) for i in range(layers)]
 
 
 class SEANetEncoder(StreamingModule):
     """(B, nfeats, T) -> (B, latent_dim, T / ratio)."""
 
-    def __init__(self, nfeats: int, latent_dim: int, n_filters: int, ratio: int, residual_layers: int,
-                 kernel_size: int = 7, residual_kernel_size: int = 3, dilation_base: int = 2, compress: int = 2) -> None:
+    def __init__(
+        self,
+        nfeats: int,
+        latent_dim: int,
+        n_filters: int,
+        ratio: int,
+        residual_layers: int,
+        kernel_size: int = 7,
+        residual_kernel_size: int = 3,
+        dilation_base: int = 2,
+        compress: int = 2,
+    ) -> None:
         super().__init__()
         self.ratio = ratio
         self.model = nn.Sequential(
@@ -56,8 +68,18 @@ class SEANetEncoder(StreamingModule):
 class SEANetDecoder(StreamingModule):
     """(B, latent_dim, S) -> (B, nfeats, S * ratio)."""
 
-    def __init__(self, nfeats: int, latent_dim: int, n_filters: int, ratio: int, residual_layers: int,
-                 kernel_size: int = 7, residual_kernel_size: int = 3, dilation_base: int = 2, compress: int = 2) -> None:
+    def __init__(
+        self,
+        nfeats: int,
+        latent_dim: int,
+        n_filters: int,
+        ratio: int,
+        residual_layers: int,
+        kernel_size: int = 7,
+        residual_kernel_size: int = 3,
+        dilation_base: int = 2,
+        compress: int = 2,
+    ) -> None:
         super().__init__()
         self.model = nn.Sequential(
             StreamingConv1d(latent_dim, 2 * n_filters, kernel_size),

@@ -11,8 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gesture.nn.weights import step_weight
 from gesture.nn import StreamingConv1d, StreamingConvTranspose1d
+from gesture.nn.weights import step_weight
 
 
 def _frozen_bias(bias: torch.Tensor | None) -> torch.Tensor | None:

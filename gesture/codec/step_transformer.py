@@ -18,8 +18,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from gesture.codec.model import LatentTransformer
-from gesture.nn.weights import step_weight
 from gesture.nn import RingKVCache, StreamingModule, StreamingState, StreamingTransformerLayer, attention_mask
+from gesture.nn.weights import step_weight
 
 
 class _StepLayer:
@@ -91,8 +91,9 @@ class StepTransformer(StreamingModule[StepTransformerState]):
         self.register_buffer("freqs", transformer.rope.freqs.detach().clone().float(), persistent=False)
 
     def _init_streaming_state(self, batch_size: int) -> StepTransformerState:
-        return StepTransformerState(batch_size, [RingKVCache(batch_size, self.num_heads, self.head_dim, self.context)
-                                                 for _ in self.layers])
+        return StepTransformerState(
+            batch_size, [RingKVCache(batch_size, self.num_heads, self.head_dim, self.context) for _ in self.layers]
+        )
 
     def _rotation(self, positions: torch.Tensor) -> torch.Tensor:
         """(T,) absolute positions -> (T, 3, 1, Dh/2) complex RoPE rotations of q, k and (identity) v."""

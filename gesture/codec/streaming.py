@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from core.timing import FRAMES_PER_STEP
+from ecas.core.timing import FRAMES_PER_STEP
 from gesture.codec.model import GestureCodec
 from gesture.nn import StreamingModule
 
@@ -23,7 +23,9 @@ from gesture.nn import StreamingModule
 class _CodecHalf:
     def __init__(self, codec: GestureCodec, modules: tuple[StreamingModule, ...], batch_size: int) -> None:
         if codec.ratio != FRAMES_PER_STEP:
-            raise ValueError(f"streaming needs a codec with ratio {FRAMES_PER_STEP} (frames per step), got {codec.ratio}")
+            raise ValueError(
+                f"streaming needs a codec with ratio {FRAMES_PER_STEP} (frames per step), got {codec.ratio}"
+            )
         if codec.training:
             raise ValueError("streaming needs an eval-mode codec: call codec.eval() first")
         self.codec, self.batch_size, self._modules = codec, batch_size, modules

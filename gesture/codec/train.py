@@ -1,6 +1,6 @@
 """Train one region codec.
 
-    python -m gesture.train_codec --config configs/codec/small.yaml --region upper \
+    python -m gesture.train_codec --config ecas/configs/codec/small.yaml --region upper \
         [--data ../shared/data/beat2/2_scott_0_1_1.npz] [--steps N] [--out DIR] [--resume]
         [--finetune-decoder TRAINED_DIR | --init-from TRAINED_DIR]
 
@@ -28,9 +28,10 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from core.body import REGIONS
-from core.config import ConfigError
-from core.threads import limit_threads
+from ecas.core.body import REGIONS
+from ecas.core.config import ConfigError
+from ecas.core.paths import data_root
+from ecas.core.threads import limit_threads
 from gesture.body.skeleton import Skeleton
 from gesture.codec.build import build_codec
 from gesture.codec.checkpoint import MODEL_FILE, load_optimizer, save_codec, save_optimizer
@@ -40,7 +41,7 @@ from gesture.codec.evaluation import evaluate
 from gesture.codec.losses import RegionLoss
 from gesture.codec.model import GestureCodec
 
-DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "2_scott_0_1_1.npz"
+DEFAULT_DATA = data_root() / "beat2" / "2_scott_0_1_1.npz"
 
 
 def commitment_ramp(step: int, ramp_steps: int) -> float:
@@ -72,9 +73,17 @@ def plot_history(history: dict, path: Path, region: str) -> None:
 class CodecTrainer:
     """Holds the codec, optimiser, schedule and history of one region's training run."""
 
-    def __init__(self, config: CodecFileConfig, region: str, data: Path, out: Path, skeleton: Skeleton,
-                 device: torch.device = torch.device("cpu"), finetune_from: Path | None = None,
-                 init_from: Path | None = None) -> None:
+    def __init__(
+        self,
+        config: CodecFileConfig,
+        region: str,
+        data: Path,
+        out: Path,
+        skeleton: Skeleton,
+        device: torch.device = torch.device("cpu"),
+        finetune_from: Path | None = None,
+        init_from: Path | None = None,
+    ) -> None:
         self.config, self.region, self.out, self.skeleton, self.device = config, region, out, skeleton, device
         train = config.train
         self.rank = dist.get_rank() if dist.is_initialized() else 0
@@ -92,8 +101,14 @@ class CodecTrainer:
                 module.requires_grad_(False)
         # codebook buffers are kept in sync by the codebooks themselves (gesture.codec.quantizer)
         self.model = DDP(self.codec, broadcast_buffers=False) if dist.is_initialized() else self.codec
-        self.loss = RegionLoss(region, skeleton, train.log_speed_weight, train.speed_floor_mps,
-                               train.expression_mse_weight, train.joint_position_weight).to(device)
+        self.loss = RegionLoss(
+            region,
+            skeleton,
+            train.log_speed_weight,
+            train.speed_floor_mps,
+            train.expression_mse_weight,
+            train.joint_position_weight,
+        ).to(device)
         self.trained = [p for p in self.codec.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(self.trained, lr=train.lr, weight_decay=train.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, train.lr_step_every, train.lr_gamma[region])
@@ -127,8 +142,9 @@ class CodecTrainer:
         self.codec.train()
         for module in self.frozen:  # frozen halves keep their codebooks: no EMA, dropout or skipped quantization
             module.eval()
-        batch = sample_batch(self.train_data, self.region, train.batch_size, train.window_frames,
-                             train.random_crop_rate, self.generator).to(self.device)  # (B, L, nfeats)
+        batch = sample_batch(
+            self.train_data, self.region, train.batch_size, train.window_frames, train.random_crop_rate, self.generator
+        ).to(self.device)  # (B, L, nfeats)
         out = self.model(batch)
         terms = self.loss(out.reconstruction, batch)
         weight = train.commitment_weight * commitment_ramp(self.step, train.commitment_ramp_steps)
@@ -146,9 +162,16 @@ class CodecTrainer:
 
     def save(self) -> None:
         save_codec(self.out, self.codec, self.config, self.region)
-        save_optimizer(self.out, self.optimizer, {
-            "step": self.step, "history": self.history, "scheduler": self.scheduler.state_dict(),
-            "generator": self.generator.get_state().tolist()})
+        save_optimizer(
+            self.out,
+            self.optimizer,
+            {
+                "step": self.step,
+                "history": self.history,
+                "scheduler": self.scheduler.state_dict(),
+                "generator": self.generator.get_state().tolist(),
+            },
+        )
         plot_history(self.history, self.out / "loss_curve.png", self.region)
 
 
@@ -169,16 +192,24 @@ def _summary(result: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     limit_threads()
     parser = argparse.ArgumentParser(description="Train a gesture region codec.")
-    parser.add_argument("--config", required=True, type=Path, help="configs/codec/*.yaml")
+    parser.add_argument("--config", required=True, type=Path, help="ecas/configs/codec/*.yaml")
     parser.add_argument("--region", required=True, choices=REGIONS)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="a BEAT2 motion npz or a chunk cache dir")
     parser.add_argument("--steps", type=int, help="total steps (default: train.steps of the config)")
     parser.add_argument("--out", type=Path, help="checkpoint directory (default: runs/codec_<region>)")
     parser.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
-    parser.add_argument("--finetune-decoder", type=Path, metavar="TRAINED_DIR",
-                        help="start from this trained codec and train only its decoder (the codes stay fixed)")
-    parser.add_argument("--init-from", type=Path, metavar="TRAINED_DIR",
-                        help="start every part from this trained codec (same sizes) and train it all")
+    parser.add_argument(
+        "--finetune-decoder",
+        type=Path,
+        metavar="TRAINED_DIR",
+        help="start from this trained codec and train only its decoder (the codes stay fixed)",
+    )
+    parser.add_argument(
+        "--init-from",
+        type=Path,
+        metavar="TRAINED_DIR",
+        help="start every part from this trained codec (same sizes) and train it all",
+    )
     parser.add_argument("--smplx-model", type=Path, help="a real SMPL-X model file for the FK joints")
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     args = parser.parse_args(argv)
@@ -202,8 +233,9 @@ def main(argv: list[str] | None = None) -> int:
         return _usage_error("--init-from: not with --finetune-decoder (which already starts from its codec)")
     device = _start_distributed(torch.device(args.device))
     try:
-        trainer = CodecTrainer(config, args.region, args.data, out, skeleton, device, args.finetune_decoder,
-                               args.init_from)
+        trainer = CodecTrainer(
+            config, args.region, args.data, out, skeleton, device, args.finetune_decoder, args.init_from
+        )
         _run(trainer, steps, args.resume)
     finally:
         if dist.is_initialized():
@@ -239,8 +271,9 @@ def _run(trainer: CodecTrainer, steps: int, resume: bool) -> None:
     elif lead:
         print(_summary(trainer.evaluate()), file=sys.stderr)
     every = trainer.config.train.checkpoint_every
-    with tqdm(total=steps, initial=trainer.step, desc=f"codec {trainer.region}", dynamic_ncols=True,
-              disable=not lead) as bar:
+    with tqdm(
+        total=steps, initial=trainer.step, desc=f"codec {trainer.region}", dynamic_ncols=True, disable=not lead
+    ) as bar:
         while trainer.step < steps:
             loss = trainer.train_step()
             bar.update(1)
@@ -248,4 +281,3 @@ def _run(trainer: CodecTrainer, steps: int, resume: bool) -> None:
             if lead and (trainer.step % every == 0 or trainer.step == steps):
                 tqdm.write(_summary(trainer.evaluate()), file=sys.stderr)
                 trainer.save()
-

@@ -9,7 +9,7 @@ import numpy as np
 import soundfile as sf
 from scipy.signal import resample_poly
 
-from core.errors import DataError
+from ecas.core.errors import DataError
 
 
 def resample_audio(pcm: np.ndarray, src_hz: int, dst_hz: int) -> np.ndarray:

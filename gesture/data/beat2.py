@@ -18,8 +18,8 @@ from typing import Optional
 
 import numpy as np
 
-from core.body import NUM_EXPRESSIONS, NUM_JOINTS
-from core.errors import DataError
+from ecas.core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from ecas.core.errors import DataError
 from gesture.data.textgrid import read_textgrid
 
 MOTION_DIRS = ("smplxflame_25", "smplxflame_30")  # preferred first

@@ -11,9 +11,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from core.config import ConfigError
-from core.errors import DataError
-from core.threads import limit_threads
+from ecas.core.config import ConfigError
+from ecas.core.errors import DataError
+from ecas.core.threads import limit_threads
 from gesture.data.beat2 import find_takes
 from gesture.data.cache import build_cache
 from gesture.data.config import DataConfig, load_data_config
@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", help="BEAT2 language directory, or a directory of <id>.npz/.wav files")
     parser.add_argument("--out", help="cache directory")
-    parser.add_argument("--config", help="YAML with data options (configs/data/*.yaml); --root/--out override it")
+    parser.add_argument("--config", help="YAML with data options (ecas/configs/data/*.yaml); --root/--out override it")
     args = parser.parse_args(argv)
     try:
         cfg = load_data_config(args.config) if args.config else DataConfig()

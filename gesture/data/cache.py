@@ -15,7 +15,7 @@ from typing import Callable, Iterable, Optional
 
 import numpy as np
 
-from core.errors import DataError
+from ecas.core.errors import DataError
 from gesture.body.skeleton import Skeleton
 from gesture.data.beat2 import Take, Word
 from gesture.data.chunks import TakeChunks, chunk_take

@@ -1,4 +1,4 @@
-"""Options of the BEAT2 data pipeline (YAML: configs/data/*.yaml)."""
+"""Options of the BEAT2 data pipeline (YAML: ecas/configs/data/*.yaml)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 
-from core.config import ConfigError, build_dataclass, load_yaml
-from core.timing import MOTION_FPS
+from ecas.core.config import ConfigError, build_dataclass, load_yaml
+from ecas.core.timing import MOTION_FPS
 
 AUDIO_SAMPLE_RATE_HZ = 16_000
 

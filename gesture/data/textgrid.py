@@ -10,7 +10,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from core.errors import DataError
+from ecas.core.errors import DataError
 
 _TOKEN = re.compile(r'"(?:[^"]|"")*"|\[\s*\d*\s*\]|<\w+>|[-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?|\.\d+')
 

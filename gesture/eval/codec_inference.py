@@ -9,15 +9,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
-from core.body import REGIONS
-from core.timing import MOTION_FPS
-from gesture.eval import metrics as M
+from ecas.core.body import REGIONS
+from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
 from gesture.body.regions import features_to_motion, motion_to_features
 from gesture.body.skeleton import Skeleton
@@ -26,12 +25,13 @@ from gesture.codec.config import CodecConfig
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
+from gesture.eval import metrics as M
 
 
 def stream_decode(codec: GestureCodec, codes: torch.Tensor) -> torch.Tensor:
     """codes (B, K, S) -> (B, 2S, nfeats) float32, one StreamingDecoder step per column."""
     with StreamingDecoder(codec, batch_size=codes.shape[0]) as decoder:
-        return torch.cat([decoder.step(codes[..., s:s + 1]) for s in range(codes.shape[-1])], dim=1)
+        return torch.cat([decoder.step(codes[..., s : s + 1]) for s in range(codes.shape[-1])], dim=1)
 
 
 @torch.no_grad()
@@ -51,8 +51,9 @@ def random_codes_error(config: CodecConfig, dtypes: Sequence[str], steps: int = 
 
 
 @torch.no_grad()
-def clip_mpjpe_mm(codecs: Mapping[str, GestureCodec], clip_path: Path, dtypes: Sequence[str],
-                  skeleton: Skeleton | None = None) -> dict:
+def clip_mpjpe_mm(
+    codecs: Mapping[str, GestureCodec], clip_path: Path, dtypes: Sequence[str], skeleton: Skeleton | None = None
+) -> dict:
     """MPJPE (mm) of the clip through encode -> stream decode, by the float32 codecs and by each prepared copy."""
     skeleton = skeleton or Skeleton.default()
     clip = M.load_motion_clip(clip_path).at_fps(MOTION_FPS)
@@ -74,7 +75,10 @@ def clip_mpjpe_mm(codecs: Mapping[str, GestureCodec], clip_path: Path, dtypes: S
         prepared = {r: inference_codec(codecs[r], dtype) for r in REGIONS}
         joints, recon = decode_joints(lambda r: stream_decode(prepared[r], codes[r]))
         value_mm = 1000 * M.mpjpe_m(joints, gt_joints)
-        result[dtype] = {"mpjpe_mm": value_mm, "mpjpe_change_mm": value_mm - reference_mm,
-                         "mpjpe_to_float32_decode_mm": 1000 * M.mpjpe_m(joints, reference_joints),
-                         "max_abs_feature_error": max(float(np.abs(recon[r] - reference[r]).max()) for r in REGIONS)}
+        result[dtype] = {
+            "mpjpe_mm": value_mm,
+            "mpjpe_change_mm": value_mm - reference_mm,
+            "mpjpe_to_float32_decode_mm": 1000 * M.mpjpe_m(joints, reference_joints),
+            "max_abs_feature_error": max(float(np.abs(recon[r] - reference[r]).max()) for r in REGIONS),
+        }
     return result

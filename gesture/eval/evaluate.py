@@ -13,16 +13,15 @@ import argparse
 import json
 import math
 import sys
-from pathlib import Path
 
-
-from core.errors import DataError
-from core.threads import limit_threads
+from ecas.core.errors import DataError
+from ecas.core.paths import data_root
+from ecas.core.threads import limit_threads
 from gesture.eval import metrics as M
 from gesture.eval.fgd import KineticGeometricEncoder
 from gesture.eval.scores import evaluate_motion
 
-DEFAULT_MEAN_SPEED = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "mean_vel_smplxflame_30.npy"
+DEFAULT_MEAN_SPEED = data_root() / "beat2" / "mean_vel_smplxflame_30.npy"
 
 
 def _encoders(args) -> list:
@@ -39,10 +38,10 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if "--suite" in argv:
         at = argv.index("--suite")
-        if argv[at + 1:at + 2] == ["real"]:  # the agent against a real speaker (gesture.eval.realism)
+        if argv[at + 1 : at + 2] == ["real"]:  # the agent against a real speaker (gesture.eval.realism)
             from gesture.eval.realism import main as realism_main
 
-            return realism_main(argv[:at] + argv[at + 2:])
+            return realism_main(argv[:at] + argv[at + 2 :])
         from gesture.eval.suite import main as suite_main  # the default agent's quality report (gesture.eval.suite)
 
         return suite_main(argv)
@@ -51,10 +50,16 @@ def main(argv=None) -> int:
     parser.add_argument("--gt", required=True, help="ground-truth motion npz")
     parser.add_argument("--wav", help="the speech (for BeatAlign)")
     parser.add_argument("--mean-vel", default=str(DEFAULT_MEAN_SPEED), help="BEAT2 mean_vel_smplxflame_30.npy")
-    parser.add_argument("--smplx-model", help="SMPL-X-format body (npz/pkl, any number of shape and expression "
-                        "components): joints shaped by the GT's betas, face MSE on its vertices")
-    parser.add_argument("--smplx-shape-components", type=int,
-                        help="shape components of the body file (default: 300 if it has >= 400 components, else 10)")
+    parser.add_argument(
+        "--smplx-model",
+        help="SMPL-X-format body (npz/pkl, any number of shape and expression "
+        "components): joints shaped by the GT's betas, face MSE on its vertices",
+    )
+    parser.add_argument(
+        "--smplx-shape-components",
+        type=int,
+        help="shape components of the body file (default: 300 if it has >= 400 components, else 10)",
+    )
     parser.add_argument("--fgd-encoder", help="BEAT2 AESKConv_240_100.bin for the learned FGD")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     args = parser.parse_args(argv)
@@ -78,4 +83,3 @@ def main(argv=None) -> int:
 
 def _one_line(err: Exception) -> str:
     return " ".join(str(err).split())
-

@@ -22,7 +22,7 @@ body about 34.
 
 from __future__ import annotations
 
-from typing import Optional, Protocol
+from typing import Protocol
 
 import numpy as np
 from scipy import linalg
@@ -78,7 +78,7 @@ class KineticGeometricEncoder:
         self.fps = fps
         self.joints = list(joints)
 
-    def features(self, poses: Optional[np.ndarray], joints: np.ndarray) -> np.ndarray:
+    def features(self, poses: np.ndarray | None, joints: np.ndarray) -> np.ndarray:
         """(T, 55, 3) joints (m) -> (N, 6J): per window log(mean speed), log(mean |acceleration|), mean position
         relative to the pelvis (3J), log(speed std); logs of (value + KINETIC_LOG_FLOOR)."""
         rel = joints[:, self.joints] - joints[:, :1]  # (T, J, 3) relative to the pelvis
@@ -91,8 +91,9 @@ class KineticGeometricEncoder:
         windows = sliding_windows(per_frame)  # (N, W, D)
         n_j = len(self.joints)
         means = windows.mean(axis=1)  # (N, 5J)
-        kinetic = np.log(np.concatenate([means[:, : 2 * n_j], windows[:, :, :n_j].std(axis=1)], axis=1)
-                         + KINETIC_LOG_FLOOR)  # (N, 3J)
+        kinetic = np.log(
+            np.concatenate([means[:, : 2 * n_j], windows[:, :, :n_j].std(axis=1)], axis=1) + KINETIC_LOG_FLOOR
+        )  # (N, 3J)
         return np.concatenate([kinetic[:, : 2 * n_j], means[:, 2 * n_j :], kinetic[:, 2 * n_j :]], axis=1)  # (N, 6J)
 
 

@@ -15,16 +15,16 @@ with ``weight``/``bias``/``mask`` (the conv masks and pooling matrices are store
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from core.body import NUM_JOINTS
-from core.errors import DataError
+from ecas.core.body import NUM_JOINTS
+from ecas.core.errors import DataError
 from gesture.body.rotation import axis_angle_to_rot6d
 from gesture.body.skeleton import PARENTS
 
@@ -112,8 +112,15 @@ def pool_edges(edges: Sequence[Edge], last: bool) -> tuple[list[list[int]], list
 class SkeletonConv(nn.Module):
     """Conv1d whose output channels of edge i see only the input channels of edges near i."""
 
-    def __init__(self, neighbours: list[list[int]], in_channels: int, out_channels: int, kernel_size: int,
-                 stride: int, padding: int):
+    def __init__(
+        self,
+        neighbours: list[list[int]],
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int,
+        stride: int,
+        padding: int,
+    ):
         super().__init__()
         n_edges = len(neighbours)
         if in_channels % n_edges or out_channels % n_edges:
@@ -208,8 +215,7 @@ def _state_dict_of(checkpoint, path: Path) -> dict:
     stripped = {}
     for key, value in state.items():
         for prefix in ("module.", "m."):
-            if key.startswith(prefix):
-                key = key[len(prefix) :]
+            key = key.removeprefix(prefix)
         stripped[key] = value
     encoder = {k[len("encoder.") :]: v for k, v in stripped.items() if k.startswith("encoder.")}
     if not encoder:
@@ -235,4 +241,3 @@ def load_vaeskconv_encoder(path: Path | str) -> VAESKConvEncoder:
     if missing or unexpected:
         raise DataError(path, f"not a VAESKConv encoder: missing {missing[:3]}..., unexpected {unexpected[:3]}...")
     return encoder.eval()
-

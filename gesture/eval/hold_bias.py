@@ -1,7 +1,7 @@
 """How often the agent's LM repeats its previous step's code, per token level, against its training tokens, for a
 range of hold biases (`gesture.hold_bias`), and the bias whose repeat rates come closest.
 
-    python -m gesture.eval.hold_bias [--config configs/default.yaml] [--biases 0 0.25 0.5 0.75 1] [--json]
+    python -m gesture.eval.hold_bias [--config ecas/configs/default.yaml] [--biases 0 0.25 0.5 0.75 1] [--json]
 
 A repeated code is a held pose: an LM that repeats its codes less often than its tokens do drifts where the data
 holds still. The sessions are validation sessions: synthetic seed 1 (the training data and the suite's held-out
@@ -17,14 +17,15 @@ import argparse
 import dataclasses
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 import torch
 
-from core.threads import limit_threads
-from core.timing import STEP_HZ
+from ecas.core.paths import DEFAULT_CONFIG
+from ecas.core.threads import limit_threads
+from ecas.core.timing import STEP_HZ
 from gesture.eval.suite import REPO, default_gesture_config, ensure_sessions, load_heldout, run_generator
 from gesture.lm.codecs import load_codecs
 
@@ -45,8 +46,16 @@ def closest_bias(rates_by_bias: dict[float, np.ndarray], target: np.ndarray, lev
     return min(rates_by_bias, key=lambda b: float(((rates_by_bias[b][levels] - target[levels]) ** 2).sum()))
 
 
-def measure(config: Path, biases: Sequence[float], root: Path, n_sessions: int, seconds: float, seed: int,
-            levels: Optional[Sequence[int]] = None, progress=print) -> dict:
+def measure(
+    config: Path,
+    biases: Sequence[float],
+    root: Path,
+    n_sessions: int,
+    seconds: float,
+    seed: int,
+    levels: Sequence[int] | None = None,
+    progress=print,
+) -> dict:
     """The report of the module docstring: the tokens' repeat rates per level, the LM's per bias (applied at
     `levels`, default the config's hold levels) and the closest bias."""
     from gesture.process import build_generator
@@ -67,21 +76,29 @@ def measure(config: Path, biases: Sequence[float], root: Path, n_sessions: int, 
     for bias in biases:
         cfg = dataclasses.replace(gesture_cfg, hold_bias=float(bias), hold_levels=tuple(levels))
         generator = build_generator(cfg, seed)
-        by_bias[float(bias)] = sum(w * repeat_rates(run_generator(generator, s.tokens.text_tokens,
-                                                                  s.tokens.audio_codes, s.pcm_24k).tokens)
-                                   for w, s in zip(weights, sessions))
+        by_bias[float(bias)] = sum(
+            w * repeat_rates(run_generator(generator, s.tokens.text_tokens, s.tokens.audio_codes, s.pcm_24k).tokens)
+            for w, s in zip(weights, sessions)
+        )
         generator.close()
         progress(f"hold bias {bias:g}: repeat rates {np.round(by_bias[float(bias)][:4], 3).tolist()} (levels 0-3)")
-    return {"lm": str(gesture_cfg.lm_checkpoint), "hold_levels": levels, "seed": seed, "data_seed": VALIDATION_SEED,
-            "sessions": [s.take.take_id for s in sessions], "seconds": float(steps.sum() / STEP_HZ),
-            "tokens": data.round(4).tolist(), "by_bias": {str(b): r.round(4).tolist() for b, r in by_bias.items()},
-            "closest": closest_bias(by_bias, data, levels)}
+    return {
+        "lm": str(gesture_cfg.lm_checkpoint),
+        "hold_levels": levels,
+        "seed": seed,
+        "data_seed": VALIDATION_SEED,
+        "sessions": [s.take.take_id for s in sessions],
+        "seconds": float(steps.sum() / STEP_HZ),
+        "tokens": data.round(4).tolist(),
+        "by_bias": {str(b): r.round(4).tolist() for b, r in by_bias.items()},
+        "closest": closest_bias(by_bias, data, levels),
+    }
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, default=REPO / "configs" / "default.yaml")
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
     parser.add_argument("--biases", type=float, nargs="+", default=[0.0, 0.25, 0.5, 0.75, 1.0])
     parser.add_argument("--levels", type=int, nargs="+", help="token levels to match (default: gesture.hold_levels)")
     parser.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="where the validation sessions live")
@@ -93,14 +110,25 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.sessions < 1 or args.seconds <= 0 or min(args.biases) < 0:
         parser.error("--sessions must be >= 1, --seconds > 0 and every bias >= 0")
     try:
-        report = measure(args.config, args.biases, args.root, args.sessions, args.seconds, args.seed, args.levels,
-                         progress=lambda msg: print(msg, file=sys.stderr))
+        report = measure(
+            args.config,
+            args.biases,
+            args.root,
+            args.sessions,
+            args.seconds,
+            args.seed,
+            args.levels,
+            progress=lambda msg: print(msg, file=sys.stderr),
+        )
     except (FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(json.dumps(report) if args.json else
-          f"tokens' repeat rates {report['tokens'][:4]} (levels 0-3); closest hold bias at levels "
-          f"{report['hold_levels']}: {report['closest']:g}")
+    print(
+        json.dumps(report)
+        if args.json
+        else f"tokens' repeat rates {report['tokens'][:4]} (levels 0-3); closest hold bias at levels "
+        f"{report['hold_levels']}: {report['closest']:g}"
+    )
     return 0
 
 

@@ -35,17 +35,18 @@ Units: joint positions in metres; MPJPE and L1div in metres; BeatAlign in [0, 1]
 from __future__ import annotations
 
 import zipfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Union
 
 import numpy as np
 import torch
 from scipy.signal import argrelextrema, get_window
 
-from core.body import JAW_JOINT, NUM_EXPRESSIONS, NUM_JOINTS, UPPER_BODY_JOINTS
-from core.errors import DataError
-from core.timing import MOTION_FPS
+from ecas.core.body import JAW_JOINT, NUM_EXPRESSIONS, NUM_JOINTS, UPPER_BODY_JOINTS
+from ecas.core.errors import DataError
+from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_rot6d, resample_motion, rot6d_to_axis_angle
 from gesture.body.skeleton import JOINT_NAMES, PARENTS, Skeleton, forward_kinematics, read_smplx_file
 from gesture.data.audio import read_audio
@@ -75,11 +76,11 @@ class MotionClip:
 
     poses: np.ndarray
     trans: np.ndarray
-    expressions: Optional[np.ndarray]
+    expressions: np.ndarray | None
     fps: float
-    betas: Optional[np.ndarray] = None
+    betas: np.ndarray | None = None
 
-    def at_fps(self, fps: float) -> "MotionClip":
+    def at_fps(self, fps: float) -> MotionClip:
         if self.fps == fps:
             return self
         poses, trans, expressions = resample_motion(self.poses, self.trans, self.expressions, self.fps, fps)
@@ -159,14 +160,15 @@ class SmplxBody:
     are not added (BEAT2 poses are full hand poses).
     """
 
-    def __init__(self, path: Path | str, num_shape_components: Optional[int] = None):
+    def __init__(self, path: Path | str, num_shape_components: int | None = None):
         model = read_smplx_file(Path(path))
         self.path = Path(path)
         self.v_template = _body_array(model, "v_template", self.path).astype(np.float32)  # (V, 3)
         shapedirs = _body_array(model, "shapedirs", self.path).astype(np.float32)
         if shapedirs.ndim != 3 or shapedirs.shape[:2] != self.v_template.shape:
-            raise DataError(self.path, f"'shapedirs' must be (V, 3, K) with V = {len(self.v_template)}, "
-                                       f"got {shapedirs.shape}")
+            raise DataError(
+                self.path, f"'shapedirs' must be (V, 3, K) with V = {len(self.v_template)}, got {shapedirs.shape}"
+            )
         k = shapedirs.shape[-1]
         default = 300 if k >= 400 else min(10, k)
         self.num_shape_components = default if num_shape_components is None else int(num_shape_components)
@@ -181,15 +183,16 @@ class SmplxBody:
             regressor = regressor.toarray()
         self.j_regressor = np.asarray(regressor, np.float32)[:NUM_JOINTS]  # (55, V)
         if self.j_regressor.shape != (NUM_JOINTS, len(self.v_template)):
-            raise DataError(self.path, f"'J_regressor' must be ({NUM_JOINTS}, {len(self.v_template)}), "
-                                       f"got {np.shape(regressor)}")
+            raise DataError(
+                self.path, f"'J_regressor' must be ({NUM_JOINTS}, {len(self.v_template)}), got {np.shape(regressor)}"
+            )
         parents = PARENTS
         if "kintree_table" in model:
             table = np.asarray(model["kintree_table"]).astype(np.int64)
             parents = tuple(int(p) if i else -1 for i, p in enumerate(table[0][:NUM_JOINTS]))
         self.parents = parents
 
-    def rest_joints(self, betas: Optional[np.ndarray]) -> np.ndarray:
+    def rest_joints(self, betas: np.ndarray | None) -> np.ndarray:
         """(55, 3) float32: J_regressor @ (v_template + shapedirs · betas[:S])."""
         coeffs = np.zeros(self.num_shape_components, np.float32)
         if betas is not None:
@@ -198,7 +201,7 @@ class SmplxBody:
         shaped = self.v_template + np.einsum("vcs,s->vc", self.shapedirs, coeffs)  # (V, 3)
         return (self.j_regressor @ shaped).astype(np.float32)
 
-    def skeleton(self, betas: Optional[np.ndarray]) -> Skeleton:
+    def skeleton(self, betas: np.ndarray | None) -> Skeleton:
         return Skeleton(JOINT_NAMES, self.parents, self.rest_joints(betas))
 
 
@@ -222,7 +225,7 @@ def joints_zero_translation(poses: np.ndarray, skeleton: Skeleton) -> np.ndarray
     return out
 
 
-def body_skeleton(body: Optional[Body], betas: Optional[np.ndarray]) -> Skeleton:
+def body_skeleton(body: Body | None, betas: np.ndarray | None) -> Skeleton:
     """The skeleton the joints come from: a body file shaped by ``betas``, a given skeleton, or the built-in one."""
     if body is None:
         return Skeleton.default()
@@ -246,13 +249,13 @@ class PreparedPair:
 
     pred_joints: np.ndarray  # (T, 55, 3) metres, zero translation
     gt_joints: np.ndarray
-    pred_expressions: Optional[np.ndarray]  # (T, E), None when either file has none
-    gt_expressions: Optional[np.ndarray]
+    pred_expressions: np.ndarray | None  # (T, E), None when either file has none
+    gt_expressions: np.ndarray | None
     pred_poses: np.ndarray  # (T, 55, 3) axis-angle after the round trip (jaw = GT jaw)
     gt_poses: np.ndarray
 
 
-def prepare_pair(pred: MotionClip, gt: MotionClip, body: Optional[Body] = None) -> PreparedPair:
+def prepare_pair(pred: MotionClip, gt: MotionClip, body: Body | None = None) -> PreparedPair:
     """Steps 0-4 for a prediction and its GT; the joints use the GT's betas for both."""
     pred, gt = pred.at_fps(MOTION_FPS), gt.at_fps(MOTION_FPS)
     n = min(len(pred.poses), len(gt.poses))
@@ -262,10 +265,15 @@ def prepare_pair(pred: MotionClip, gt: MotionClip, body: Optional[Body] = None) 
     pred_poses[:, JAW_JOINT] = gt.poses[:n, JAW_JOINT]
     with_face = pred.expressions is not None and gt.expressions is not None
     width = min(pred.expressions.shape[1], gt.expressions.shape[1]) if with_face else 0
-    pred30 = MotionClip(pred_poses, pred.trans[:n], pred.expressions[:n, :width] if with_face else None,
-                        MOTION_FPS).at_fps(METRIC_FPS)
-    gt30 = MotionClip(np.asarray(gt.poses[:n], np.float64), gt.trans[:n],
-                      gt.expressions[:n, :width] if with_face else None, MOTION_FPS).at_fps(METRIC_FPS)
+    pred30 = MotionClip(
+        pred_poses, pred.trans[:n], pred.expressions[:n, :width] if with_face else None, MOTION_FPS
+    ).at_fps(METRIC_FPS)
+    gt30 = MotionClip(
+        np.asarray(gt.poses[:n], np.float64),
+        gt.trans[:n],
+        gt.expressions[:n, :width] if with_face else None,
+        MOTION_FPS,
+    ).at_fps(METRIC_FPS)
     pred_rt, gt_rt = rotation_round_trip(pred30.poses), rotation_round_trip(gt30.poses)
     skeleton = body_skeleton(body, gt.betas)
     return PreparedPair(
@@ -383,8 +391,9 @@ def mel_filterbank(sample_rate_hz: int, n_fft: int, n_mels: int = ONSET_MEL_BAND
     """(n_mels, 1 + n_fft/2) float32 triangular filters on the Slaney mel scale, area-normalised, 0..sr/2
     (librosa.filters.mel's defaults)."""
     fft_hz = np.fft.rfftfreq(n=n_fft, d=1.0 / sample_rate_hz)
-    edges_mel = np.linspace(_hz_to_mel_slaney(np.array([0.0]))[0],
-                            _hz_to_mel_slaney(np.array([0.5 * sample_rate_hz]))[0], n_mels + 2)
+    edges_mel = np.linspace(
+        _hz_to_mel_slaney(np.array([0.0]))[0], _hz_to_mel_slaney(np.array([0.5 * sample_rate_hz]))[0], n_mels + 2
+    )
     edges_hz = _mel_to_hz_slaney(edges_mel)
     widths = np.diff(edges_hz)
     ramps = np.subtract.outer(edges_hz, fft_hz)  # (n_mels + 2, F)
@@ -396,8 +405,9 @@ def mel_filterbank(sample_rate_hz: int, n_fft: int, n_mels: int = ONSET_MEL_BAND
     return weights
 
 
-def onset_strength(y: np.ndarray, sample_rate_hz: int, hop: int = ONSET_HOP_SAMPLES,
-                   n_fft: int = ONSET_FFT_SAMPLES) -> np.ndarray:
+def onset_strength(
+    y: np.ndarray, sample_rate_hz: int, hop: int = ONSET_HOP_SAMPLES, n_fft: int = ONSET_FFT_SAMPLES
+) -> np.ndarray:
     """(frames,) float32 spectral flux of a centred 128-band log-mel spectrogram (librosa.onset.onset_strength
     with its defaults), computed with the same array operations in the same memory order, so equal to it."""
     y = np.asarray(y, np.float32)
@@ -417,8 +427,9 @@ def onset_strength(y: np.ndarray, sample_rate_hz: int, hop: int = ONSET_HOP_SAMP
     return np.pad(mean_flux, [(0, 0), (lag_and_centre, 0)], mode="constant")[0, : log_mel.shape[-1]]
 
 
-def peak_pick(x: np.ndarray, pre_max: int, post_max: int, pre_avg: int, post_avg: int, delta: float,
-              wait: int) -> np.ndarray:
+def peak_pick(
+    x: np.ndarray, pre_max: int, post_max: int, pre_avg: int, post_avg: int, delta: float, wait: int
+) -> np.ndarray:
     """Indices n with x[n] == max(x[n - pre_max : n + post_max]) and x[n] >= mean(x[n - pre_avg : n + post_avg])
     + delta, taken greedily at least ``wait`` + 1 apart (librosa.util.peak_pick, numpy instead of numba).
 
@@ -447,21 +458,29 @@ def peak_pick(x: np.ndarray, pre_max: int, post_max: int, pre_avg: int, post_avg
     return np.array(peaks, dtype=np.int64)
 
 
-def onset_times_s(y: np.ndarray, sample_rate_hz: int = AUDIO_SAMPLE_RATE_HZ,
-                  hop: int = ONSET_HOP_SAMPLES) -> np.ndarray:
+def onset_times_s(
+    y: np.ndarray, sample_rate_hz: int = AUDIO_SAMPLE_RATE_HZ, hop: int = ONSET_HOP_SAMPLES
+) -> np.ndarray:
     """Onset times (s) as ``librosa.onset.onset_detect(y, sr, hop_length=hop, units='time')``."""
     envelope = onset_strength(y, sample_rate_hz, hop)
     envelope = envelope - np.min(envelope, keepdims=True, axis=-1)
     envelope /= np.max(envelope, keepdims=True, axis=-1) + np.finfo(envelope.dtype).tiny
     if not envelope.any() or not np.all(np.isfinite(envelope)):
         return np.zeros(0)
-    frames_of = lambda seconds: int(np.ceil(seconds * sample_rate_hz // hop))  # noqa: E731
-    frames = peak_pick(envelope, pre_max=frames_of(0.03), post_max=frames_of(0.0) + 1, pre_avg=frames_of(0.10),
-                       post_avg=frames_of(0.10) + 1, delta=0.07, wait=frames_of(0.03))
+    frames_of = lambda seconds: int(np.ceil(seconds * sample_rate_hz // hop))
+    frames = peak_pick(
+        envelope,
+        pre_max=frames_of(0.03),
+        post_max=frames_of(0.0) + 1,
+        pre_avg=frames_of(0.10),
+        post_avg=frames_of(0.10) + 1,
+        delta=0.07,
+        wait=frames_of(0.03),
+    )
     return (frames * hop).astype(int) / float(sample_rate_hz)
 
 
-def beat_align_onsets_s(speech: Union[SpeechAudio, np.ndarray], n_frames_30fps: int) -> np.ndarray:
+def beat_align_onsets_s(speech: SpeechAudio | np.ndarray, n_frames_30fps: int) -> np.ndarray:
     """The audio onsets BeatAlign compares with, in seconds from the start of the beat window (frame 60).
 
     ``speech``: a SpeechAudio at its own rate, or a plain array taken to be 16 kHz samples."""
@@ -532,8 +551,9 @@ def motion_beat_frames(
     tests the threshold at the minimum's own frame.
     """
     if len(joints) <= 2 * trim_frames:
-        raise ValueError(f"BeatAlign: clip of {len(joints)} frames at {fps:g} fps is too short to drop "
-                         f"{trim_frames} at each end")
+        raise ValueError(
+            f"BeatAlign: clip of {len(joints)} frames at {fps:g} fps is too short to drop {trim_frames} at each end"
+        )
     positions = joints_as_left_by_l1div(joints) if reference_quirk else joints
     speed = joint_speeds(positions, fps) / mean_speed[None, : joints.shape[1]]  # (T, J)
     return speed_minima_beats(speed, trim_frames, slipped_threshold=reference_quirk)

@@ -52,29 +52,34 @@ import json
 import math
 import subprocess
 import sys
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 import torch
 from scipy.ndimage import binary_closing, gaussian_filter1d, label, median_filter
 from scipy.signal import find_peaks
 
-from core.errors import DataError
-from core.threads import limit_threads
-from core.timing import MOTION_FPS
+from ecas.core.errors import DataError
+from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.threads import limit_threads
+from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
-from gesture.body.rotation import (axis_angle_to_matrix, axis_angle_to_quaternion, matrix_to_axis_angle_np,
-                                   quaternion_to_axis_angle)
+from gesture.body.rotation import (
+    axis_angle_to_matrix,
+    axis_angle_to_quaternion,
+    matrix_to_axis_angle_np,
+    quaternion_to_axis_angle,
+)
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.eval import metrics as M
 
 ROOT = Path(__file__).resolve().parents[2]
-SHARED_BEAT2 = ROOT.parent / "shared" / "data" / "beat2"
+SHARED_BEAT2 = data_root() / "beat2"
 REAL_CLIP = SHARED_BEAT2 / "2_scott_0_1_1"
 MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
-DEFAULT_APP_CONFIG = ROOT / "configs" / "default.yaml"
+DEFAULT_APP_CONFIG = DEFAULT_CONFIG
 
 JOINT_GROUPS = {
     "wrists": (20, 21),
@@ -123,15 +128,16 @@ def canonical(clip: M.MotionClip) -> M.MotionClip:
 
 
 def cut(clip: M.MotionClip, n_frames: int) -> M.MotionClip:
-    return replace(clip, poses=clip.poses[:n_frames], trans=clip.trans[:n_frames],
-                   expressions=clip.expressions[:n_frames])
+    return replace(
+        clip, poses=clip.poses[:n_frames], trans=clip.trans[:n_frames], expressions=clip.expressions[:n_frames]
+    )
 
 
 def inner(x: np.ndarray, fps: float = MOTION_FPS) -> np.ndarray:
     edge = int(EDGE_S * fps)
     if len(x) <= 2 * edge + 2:
         raise ValueError(f"realism: a clip of {len(x)} frames is too short to drop {EDGE_S} s at each end")
-    return x[edge: len(x) - edge]
+    return x[edge : len(x) - edge]
 
 
 # ---------------------------------------------------------------- joint groups
@@ -192,8 +198,10 @@ def fast_share(hz: np.ndarray, power: np.ndarray) -> np.ndarray:
 def fast_power_shares(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
     """Per joint group: the share of its angular velocity's power (summed over its joints) within ``FAST_BAND_HZ``."""
     hz, power = velocity_power(poses, fps)
-    return {name: {"fast_power_share": float(fast_share(hz, power[:, list(joints)].sum(1)))}
-            for name, joints in JOINT_GROUPS.items()}
+    return {
+        name: {"fast_power_share": float(fast_share(hz, power[:, list(joints)].sum(1)))}
+        for name, joints in JOINT_GROUPS.items()
+    }
 
 
 def world_rotations(poses: np.ndarray, chain: Sequence[int]) -> np.ndarray:
@@ -214,8 +222,12 @@ def world_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
         velocity = np.einsum("tij,tj->ti", world[:-1], step)  # (T-1, 3) rad/s in the world frame
         speed = np.linalg.norm(velocity, axis=-1)
         accel = np.linalg.norm(np.diff(velocity, axis=0), axis=-1) * fps
-        out[name] = {"speed_median": float(np.median(speed)), "speed_p90": float(np.percentile(speed, 90)),
-                     "accel_median": float(np.median(accel)), "accel_p90": float(np.percentile(accel, 90))}
+        out[name] = {
+            "speed_median": float(np.median(speed)),
+            "speed_p90": float(np.percentile(speed, 90)),
+            "accel_median": float(np.median(accel)),
+            "accel_p90": float(np.percentile(accel, 90)),
+        }
     return out
 
 
@@ -238,8 +250,9 @@ def body_frame_joints(poses: np.ndarray, skeleton: Skeleton) -> np.ndarray:
 def stroke_times_s(wrist: np.ndarray, fps: float = MOTION_FPS) -> np.ndarray:
     """(T, 3) wrist positions -> times (s) of its strokes: prominent peaks of its (lightly smoothed) speed."""
     speed = np.linalg.norm(np.gradient(gaussian_filter1d(wrist, 1.0, axis=0), axis=0), axis=-1) * fps  # (T,)
-    peaks, _ = find_peaks(speed, height=STROKE_SPEED_MPS, prominence=STROKE_PROMINENCE_MPS,
-                          distance=max(1, int(STROKE_MIN_GAP_S * fps)))
+    peaks, _ = find_peaks(
+        speed, height=STROKE_SPEED_MPS, prominence=STROKE_PROMINENCE_MPS, distance=max(1, int(STROKE_MIN_GAP_S * fps))
+    )
     return peaks / fps
 
 
@@ -254,11 +267,15 @@ def position_fast_share(points: np.ndarray, fps: float = MOTION_FPS) -> float:
 def hand_stats(joints: np.ndarray, fps: float = MOTION_FPS) -> dict:
     minutes = len(joints) / fps / 60.0
     strokes = sum(len(stroke_times_s(joints[:, w], fps)) for w in WRISTS)
-    height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS:PELVIS + 1, 1]).reshape(-1)  # (2T,) metres
+    height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS : PELVIS + 1, 1]).reshape(-1)  # (2T,) metres
     p10, p50, p90 = np.percentile(height, (10, 50, 90))
-    return {"strokes_per_minute": strokes / minutes, "hand_height_p10_m": float(p10),
-            "hand_height_median_m": float(p50), "hand_height_p90_m": float(p90),
-            "quick_share": position_fast_share(joints[:, list(WRISTS)], fps)}
+    return {
+        "strokes_per_minute": strokes / minutes,
+        "hand_height_p10_m": float(p10),
+        "hand_height_median_m": float(p50),
+        "hand_height_p90_m": float(p90),
+        "quick_share": position_fast_share(joints[:, list(WRISTS)], fps),
+    }
 
 
 def step_count(ankle_xz: np.ndarray, fps: float = MOTION_FPS) -> int:
@@ -279,14 +296,16 @@ def feet_stats(poses: np.ndarray, trans: np.ndarray, skeleton: Skeleton, fps: fl
     minutes = len(joints) / fps / 60
     second = int(round(fps))
     travel = np.linalg.norm(floor[second:, PELVIS] - floor[:-second, PELVIS], axis=-1)
-    return {"ankles_planted_fraction": float((speed < PLANTED_MPS).mean()),
-            "ankle_speed_p90": float(np.percentile(speed, 90)),
-            "steps_per_minute": float(np.mean([step_count(floor[:, a], fps) for a in ANKLES]) / minutes),
-            "pelvis_travel_mps": float(np.median(travel))}
+    return {
+        "ankles_planted_fraction": float((speed < PLANTED_MPS).mean()),
+        "ankle_speed_p90": float(np.percentile(speed, 90)),
+        "steps_per_minute": float(np.mean([step_count(floor[:, a], fps) for a in ANKLES]) / minutes),
+        "pelvis_travel_mps": float(np.median(travel)),
+    }
 
 
 def height_histogram(joints: np.ndarray) -> np.ndarray:
-    height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS:PELVIS + 1, 1]).reshape(-1)
+    height = (joints[:, list(WRISTS), 1] - joints[:, PELVIS : PELVIS + 1, 1]).reshape(-1)
     hist, _ = np.histogram(np.clip(height, HEIGHT_BINS_M[0], HEIGHT_BINS_M[-1]), HEIGHT_BINS_M)
     return hist / max(hist.sum(), 1)
 
@@ -310,8 +329,10 @@ def face_event_times_s(activation: np.ndarray, height: float, min_gap_s: float, 
 def face_stats(expressions: np.ndarray, fps: float = MOTION_FPS) -> dict:
     minutes = len(expressions) / fps / 60.0
     acts = face_activations(np.asarray(expressions, np.float64))
-    return {f"{name}s_per_minute": len(face_event_times_s(acts[name], *FACE_EVENTS[name], fps)) / minutes
-            for name in FACE_EVENTS}
+    return {
+        f"{name}s_per_minute": len(face_event_times_s(acts[name], *FACE_EVENTS[name], fps)) / minutes
+        for name in FACE_EVENTS
+    }
 
 
 # ---------------------------------------------------------------- one motion against the real clip
@@ -321,9 +342,14 @@ def describe(clip: M.MotionClip, skeleton: Skeleton) -> dict:
     """Everything that does not need the real clip: groups, hands, feet, face (inner part of the clip)."""
     poses = inner(clip.poses)
     joints = body_frame_joints(poses, skeleton)
-    return {"groups": group_stats(poses), "hands": hand_stats(joints),
-            "feet": feet_stats(poses, inner(clip.trans), skeleton), "face": face_stats(inner(clip.expressions)),
-            "spectra": fast_power_shares(poses), "world": world_stats(poses)}
+    return {
+        "groups": group_stats(poses),
+        "hands": hand_stats(joints),
+        "feet": feet_stats(poses, inner(clip.trans), skeleton),
+        "face": face_stats(inner(clip.expressions)),
+        "spectra": fast_power_shares(poses),
+        "world": world_stats(poses),
+    }
 
 
 def protocol_metrics(clip: M.MotionClip, real: M.MotionClip, speech, mean_speed: np.ndarray) -> dict:
@@ -333,14 +359,16 @@ def protocol_metrics(clip: M.MotionClip, real: M.MotionClip, speech, mean_speed:
 
     pair = M.prepare_pair(clip, real)
     onsets = M.beat_align_onsets_s(speech, len(pair.gt_joints))
-    return {"l1div": M.l1_div(pair.pred_joints), "beat_align": M.beat_align(pair.pred_joints, onsets, mean_speed),
-            "fgd_kinetic": fgd(KineticGeometricEncoder(), pair.pred_poses, pair.pred_joints, pair.gt_poses,
-                               pair.gt_joints),
-            "real_l1div": M.l1_div(pair.gt_joints),
-            "real_beat_align": M.beat_align(pair.gt_joints, onsets, mean_speed)}
+    return {
+        "l1div": M.l1_div(pair.pred_joints),
+        "beat_align": M.beat_align(pair.pred_joints, onsets, mean_speed),
+        "fgd_kinetic": fgd(KineticGeometricEncoder(), pair.pred_poses, pair.pred_joints, pair.gt_poses, pair.gt_joints),
+        "real_l1div": M.l1_div(pair.gt_joints),
+        "real_beat_align": M.beat_align(pair.gt_joints, onsets, mean_speed),
+    }
 
 
-def _ratio(value: float, reference: float) -> Optional[float]:
+def _ratio(value: float, reference: float) -> float | None:
     return None if reference == 0 or not math.isfinite(reference) else value / reference
 
 
@@ -384,9 +412,9 @@ def synthetic_reference(wav: Path, n_frames: int, seed: int, words=None) -> M.Mo
 
 def through_codecs(clip: M.MotionClip, codec_dir: Path) -> M.MotionClip:
     """``clip`` encoded and decoded by the codecs in ``codec_dir``: the most of it that the agent's tokens can carry."""
+    from gesture.body.regions import features_to_motion, motion_to_features
     from gesture.codec.evaluation import reconstruct
     from gesture.lm.codecs import REGIONS, load_codecs
-    from gesture.body.regions import features_to_motion, motion_to_features
 
     codecs = load_codecs(codec_dir)
     features = motion_to_features(clip.poses, clip.trans, clip.expressions, MOTION_FPS)  # region -> (T, F)
@@ -428,8 +456,19 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
     """Run the agent of the app ``config`` on the recording with the playback backend (``overrides``: launch.py
     ``--set`` options); returns its motion.npz."""
     report_dir.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, str(ROOT / "launch.py"), "--config", str(config), "--speak", str(wav), "--headless",
-           "--seed", str(seed), "--report", str(report_dir)] + [arg for item in overrides for arg in ("--set", item)]
+    cmd = [
+        sys.executable,
+        str(ROOT / "launch.py"),
+        "--config",
+        str(config),
+        "--speak",
+        str(wav),
+        "--headless",
+        "--seed",
+        str(seed),
+        "--report",
+        str(report_dir),
+    ] + [arg for item in overrides for arg in ("--set", item)]
     with open(report_dir / "launch.out", "w") as log:
         subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
     return report_dir / "motion.npz"
@@ -437,21 +476,23 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
 
 def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
     """The codec directory of the app ``config`` with launch.py ``--set`` ``overrides`` (relative to the repository)."""
-    from core.config import apply_override, build_dataclass, load_yaml, parse_override
+    from ecas.core.config import apply_override, build_dataclass, load_yaml, parse_override
     from gesture.config import GestureConfig
 
     tree = load_yaml(config)
     for text in overrides:
         apply_override(tree, *parse_override(text))
     codecs = build_dataclass(GestureConfig, tree.get("gesture"), "gesture").codec_checkpoints
-    return ROOT / (codecs if codecs is not None else "checkpoints/codecs")
+    return ROOT / (codecs if codecs is not None else "ecas/checkpoints/codecs")
 
 
 def halves(clip: M.MotionClip) -> tuple[M.MotionClip, M.MotionClip]:
     """The clip's first and second halves."""
     n = len(clip.poses) // 2
-    return tuple(M.MotionClip(clip.poses[part], clip.trans[part], clip.expressions[part], clip.fps)
-                 for part in (slice(0, n), slice(n, 2 * n)))
+    return tuple(
+        M.MotionClip(clip.poses[part], clip.trans[part], clip.expressions[part], clip.fps)
+        for part in (slice(0, n), slice(n, 2 * n))
+    )
 
 
 def speaker_against_himself(real: M.MotionClip, skeleton: Skeleton) -> dict:
@@ -461,13 +502,18 @@ def speaker_against_himself(real: M.MotionClip, skeleton: Skeleton) -> dict:
     first, second = halves(real)
     half_ratios = ratios(describe(second, skeleton), describe(first, skeleton))
     low, high = GROUP_GOAL_RANGE
-    outside = [f"{group}.{key}" for group in GOAL_GROUPS for key, value in half_ratios["groups"][group].items()
-               if not low <= value <= high]
+    outside = [
+        f"{group}.{key}"
+        for group in GOAL_GROUPS
+        for key, value in half_ratios["groups"][group].items()
+        if not low <= value <= high
+    ]
     return {"seconds_each": len(first.poses) / first.fps, "ratios": half_ratios, "goal_ratios_outside": outside}
 
 
-def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
-                 mean_speed: np.ndarray, skeleton: Skeleton) -> dict:
+def build_report(
+    real: M.MotionClip, motions: dict[str, M.MotionClip], speech, mean_speed: np.ndarray, skeleton: Skeleton
+) -> dict:
     real_desc = describe(real, skeleton)
     report: dict = {"real": dict(real_desc, protocol={}), "real_halves": speaker_against_himself(real, skeleton)}
     for name, clip in motions.items():
@@ -475,11 +521,17 @@ def build_report(real: M.MotionClip, motions: dict[str, M.MotionClip], speech,
         protocol = protocol_metrics(clip, real, speech, mean_speed)
         report["real"]["protocol"] = {"l1div": protocol["real_l1div"], "beat_align": protocol["real_beat_align"]}
         entry = dict(desc, protocol={k: protocol[k] for k in ("l1div", "beat_align", "fgd_kinetic")})
-        entry["ratios"] = ratios({k: desc[k] for k in ("groups", "hands", "feet", "face", "spectra", "world")}, real_desc)
+        entry["ratios"] = ratios(
+            {k: desc[k] for k in ("groups", "hands", "feet", "face", "spectra", "world")}, real_desc
+        )
         entry["ratios"]["l1div"] = protocol["l1div"] / protocol["real_l1div"]
         entry["beat_align_minus_real"] = protocol["beat_align"] - protocol["real_beat_align"]
-        entry["hand_height_overlap"] = float(np.minimum(height_histogram(body_frame_joints(inner(clip.poses), skeleton)),
-                                                        height_histogram(body_frame_joints(inner(real.poses), skeleton))).sum())
+        entry["hand_height_overlap"] = float(
+            np.minimum(
+                height_histogram(body_frame_joints(inner(clip.poses), skeleton)),
+                height_histogram(body_frame_joints(inner(real.poses), skeleton)),
+            ).sum()
+        )
         entry["goals"] = goal_check(entry, protocol["real_beat_align"])
         report[name] = entry
     return report
@@ -498,8 +550,14 @@ def plot_speeds(real: M.MotionClip, motions: dict[str, M.MotionClip], path: Path
     samples.update({name: group_speed_samples(inner(clip.poses)) for name, clip in motions.items()})
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
     bins = np.logspace(-2.5, 1.3, 50)
-    styles = {"real": ("k", 2.2), "generated": ("tab:red", 1.6), "generated_codecs_only": ("tab:orange", 1.0),
-              "synthetic_gt": ("tab:blue", 1.2), "baseline": ("tab:gray", 1.0), "real_through_codecs": ("tab:green", 1.0)}
+    styles = {
+        "real": ("k", 2.2),
+        "generated": ("tab:red", 1.6),
+        "generated_codecs_only": ("tab:orange", 1.0),
+        "synthetic_gt": ("tab:blue", 1.2),
+        "baseline": ("tab:gray", 1.0),
+        "real_through_codecs": ("tab:green", 1.0),
+    }
     for ax, group in zip(axes.flat, JOINT_GROUPS):
         for name, per_group in samples.items():
             colour, width = styles[name]
@@ -516,8 +574,9 @@ def plot_speeds(real: M.MotionClip, motions: dict[str, M.MotionClip], path: Path
     plt.close(fig)
 
 
-def side_by_side_mp4(real_npz: Path, generated_npz: Path, wav: Path, path: Path, size: int = 384,
-                     camera: str = "upper") -> dict:
+def side_by_side_mp4(
+    real_npz: Path, generated_npz: Path, wav: Path, path: Path, size: int = 384, camera: str = "upper"
+) -> dict:
     """Real clip (left) and the agent (right) with the speech, rendered by render.play's pieces."""
     from render.mp4 import Mp4Writer
     from render.play import EncoderThread, frame_audio, load_motion_25fps
@@ -575,7 +634,9 @@ def format_table(report: dict) -> str:
     lines.append(f"{'hand_height_overlap':30s}" + "".join(f"{report[n]['hand_height_overlap']:32.2f}" for n in names))
     lines.append(f"{'l1div':30s}" + "".join(f"{report[n]['ratios']['l1div']:32.2f}" for n in names))
     lines.append(f"{'beat_align - real':30s}" + "".join(f"{report[n]['beat_align_minus_real']:32.3f}" for n in names))
-    lines.append(f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:32.3f}" for n in names))
+    lines.append(
+        f"{'fgd_kinetic (absolute)':30s}" + "".join(f"{report[n]['protocol']['fgd_kinetic']:32.3f}" for n in names)
+    )
     own = report["real_halves"]
     lines.append(f"\nthe speaker against himself (the clip's second {own['seconds_each']:.0f} s / its first):")
     for group in GOAL_GROUPS:
@@ -584,18 +645,30 @@ def format_table(report: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
     p = argparse.ArgumentParser(prog="python -m gesture.realism", description=__doc__.splitlines()[0])
-    p.add_argument("--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline")
+    p.add_argument(
+        "--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline"
+    )
     p.add_argument("--out", help="directory for realism.json, speeds.png, side_by_side.mp4 and the agent's run")
     p.add_argument("--motion", help="reuse this motion.npz of the agent instead of running launch.py --speak")
-    p.add_argument("--config", type=Path, default=DEFAULT_APP_CONFIG, help="the agent's app config (launch.py --config)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="passed to launch.py (e.g. gesture.lm_checkpoint=runs/x/gesture_lm)")
+    p.add_argument(
+        "--config", type=Path, default=DEFAULT_APP_CONFIG, help="the agent's app config (launch.py --config)"
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="passed to launch.py (e.g. gesture.lm_checkpoint=runs/x/gesture_lm)",
+    )
     p.add_argument("--synthetic", help="reuse this motion npz as the synthetic reference instead of generating it")
-    p.add_argument("--codecs", help="the agent's codecs, for the real clip's reconstruction (the ceiling; default: "
-                                    "the config's gesture.codec_checkpoints)")
+    p.add_argument(
+        "--codecs",
+        help="the agent's codecs, for the real clip's reconstruction (the ceiling; default: "
+        "the config's gesture.codec_checkpoints)",
+    )
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip, without extension (.npz and .wav)")
     p.add_argument("--wav", help="the clip's speech when it is not CLIP.wav (e.g. BEAT2's wave16k/<take>.wav)")
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
@@ -611,29 +684,45 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         config = args.config.resolve()  # launch.py runs in the repository
         codecs = Path(args.codecs) if args.codecs else config_codecs(config, args.set)
-        generated_npz = (Path(args.motion) if args.motion
-                         else speak_clip(wav, args.seed, out / "agent", config, args.set))
+        generated_npz = (
+            Path(args.motion) if args.motion else speak_clip(wav, args.seed, out / "agent", config, args.set)
+        )
         skeleton = Skeleton.default()
         real, generated = load_clip(real_npz), load_clip(generated_npz)
         n = min(len(real.poses), len(generated.poses))
         real = cut(real, n)
-        synthetic = (cut(load_clip(args.synthetic), n) if args.synthetic
-                     else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json")))
+        synthetic = (
+            cut(load_clip(args.synthetic), n)
+            if args.synthetic
+            else synthetic_reference(wav, n, args.seed, clip_words(wav, out / "words.json"))
+        )
         motions = {"generated": cut(generated, n)}
         if not args.motion:  # the same agent without its runtime layers: what the LM and codecs alone carry
-            plain_npz = speak_clip(wav, args.seed, out / "agent_codecs_only", config,
-                                   args.set + [f"gesture.{layer}.enabled=false" for layer in RUNTIME_LAYERS])
+            plain_npz = speak_clip(
+                wav,
+                args.seed,
+                out / "agent_codecs_only",
+                config,
+                args.set + [f"gesture.{layer}.enabled=false" for layer in RUNTIME_LAYERS],
+            )
             motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
-        motions |= {"synthetic_gt": synthetic,
-                   "baseline": baseline_reference(real, args.seed),
-                   "real_through_codecs": cut(through_codecs(real, codecs), n)}
-        report = build_report(real, motions, M.load_speech(wav),
-                              M.load_mean_speed(MEAN_SPEED_NPY), skeleton)
+        motions |= {
+            "synthetic_gt": synthetic,
+            "baseline": baseline_reference(real, args.seed),
+            "real_through_codecs": cut(through_codecs(real, codecs), n),
+        }
+        report = build_report(real, motions, M.load_speech(wav), M.load_mean_speed(MEAN_SPEED_NPY), skeleton)
     except (DataError, ValueError, FileNotFoundError, subprocess.CalledProcessError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    report["meta"] = {"clip": real_npz.stem, "seconds": n / MOTION_FPS, "seed": args.seed,
-                      "generated_motion": str(generated_npz), "edge_s": EDGE_S, "still_rad_s": STILL_RAD_S}
+    report["meta"] = {
+        "clip": real_npz.stem,
+        "seconds": n / MOTION_FPS,
+        "seed": args.seed,
+        "generated_motion": str(generated_npz),
+        "edge_s": EDGE_S,
+        "still_rad_s": STILL_RAD_S,
+    }
     plot_speeds(real, motions, out / "speeds.png")
     if not args.no_video:
         report["meta"]["video"] = side_by_side_mp4(real_npz, generated_npz, wav, out / "side_by_side.mp4")["path"]
@@ -641,4 +730,3 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     (out / "realism.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report) if args.json else format_table(report))
     return 0
-

@@ -5,7 +5,7 @@ The command around it is gesture.eval.evaluate; the quality suite and the realis
 
 from __future__ import annotations
 
-from typing import Optional, Sequence, Union
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -16,12 +16,12 @@ from gesture.eval.fgd import FeatureEncoder, KineticGeometricEncoder, fgd
 def evaluate_motion(
     pred: M.MotionClip,
     gt: M.MotionClip,
-    speech: Optional[Union[M.SpeechAudio, np.ndarray]] = None,
-    mean_speed: Optional[np.ndarray] = None,
-    body: Optional[M.Body] = None,
+    speech: M.SpeechAudio | np.ndarray | None = None,
+    mean_speed: np.ndarray | None = None,
+    body: M.Body | None = None,
     encoders: Sequence[FeatureEncoder] = (KineticGeometricEncoder(),),
-    expression_dirs: Optional[np.ndarray] = None,
-    onsets_s: Optional[np.ndarray] = None,
+    expression_dirs: np.ndarray | None = None,
+    onsets_s: np.ndarray | None = None,
 ) -> dict:
     """Every metric of one prediction/GT pair by the reference protocol (gesture.eval.metrics), over every frame.
 
@@ -33,7 +33,7 @@ def evaluate_motion(
     pair = M.prepare_pair(pred, gt, body)
     pj, gj = pair.pred_joints, pair.gt_joints
     out = {
-        "frames_30fps": int(len(pj)),
+        "frames_30fps": len(pj),
         "mpjpe_mm": 1000 * M.mpjpe_m(pj, gj),
         "l1div": M.l1_div(pj),
         "l1div_gt": M.l1_div(gj),

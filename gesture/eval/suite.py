@@ -1,6 +1,6 @@
 """The default agent's quality report: ``python -m gesture.evaluate --suite default [--json]``.
 
-It loads the generator exactly as the runtime does (the `gesture:` section of configs/default.yaml, checked
+It loads the generator exactly as the runtime does (the `gesture:` section of ecas/configs/default.yaml, checked
 against the local backend's condition spec) and measures:
 - on held-out synthetic sessions (the `test` split of a synthetic directory; by default sessions k = 10, 20,
   ..., 100 of seed 0, 3 minutes each, generated on first use and again whenever the generator changes:
@@ -28,17 +28,18 @@ import json
 import math
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 import torch
 
-from core.body import REGIONS
-from core.config import build_dataclass, load_yaml
-from core.threads import limit_threads
-from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
+from ecas.core.body import REGIONS
+from ecas.core.config import build_dataclass, load_yaml
+from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.threads import limit_threads
+from ecas.core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from gesture.body.motion import canonicalize
 from gesture.body.regions import features_to_motion, motion_to_features
 from gesture.body.skeleton import Skeleton
@@ -54,9 +55,9 @@ from gesture.lm.codecs import load_codecs
 from gesture.lm.tokenize import TokenizedTake, agent_audio_path, tokenize_take
 
 REPO = Path(__file__).resolve().parents[2]
-SHARED_DATA = REPO.parent / "shared" / "data"
-DEFAULT_LM = Path("checkpoints/gesture_lm")
-DEFAULT_CODECS = Path("checkpoints/codecs")
+SHARED_DATA = data_root()
+DEFAULT_LM = Path("ecas/checkpoints/gesture_lm")
+DEFAULT_CODECS = Path("ecas/checkpoints/codecs")
 GOALS = {
     "l1div_rel_error_max": 0.25,  # |L1div / L1div_GT - 1|
     "beat_align_abs_error_max": 0.05,  # |BeatAlign - BeatAlign_GT|
@@ -69,7 +70,7 @@ GOALS = {
 
 @dataclass(frozen=True)
 class SuiteOptions:
-    config: Path = REPO / "configs" / "default.yaml"
+    config: Path = DEFAULT_CONFIG
     synthetic_root: Path = REPO / "runs" / "suite_heldout"  # generated on first use (see ensure_heldout)
     beat2_motion: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.npz"
     beat2_wav: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.wav"
@@ -111,8 +112,9 @@ def default_gesture_config(config_path: Path) -> tuple[GestureConfig, object]:
     return dataclasses.replace(gesture, dialogue_spec=LOCAL_SPEC), dialogue
 
 
-def run_generator(generator: GestureGenerator, text: np.ndarray, audio: np.ndarray,
-                  pcm_24k: Optional[np.ndarray] = None) -> Generated:
+def run_generator(
+    generator: GestureGenerator, text: np.ndarray, audio: np.ndarray, pcm_24k: np.ndarray | None = None
+) -> Generated:
     """Drive the generator with T steps of conditioning: text (T,), audio codes (Q, T), agent audio (T*1920,)."""
     generator.reset()
     n = len(text)
@@ -127,13 +129,14 @@ def run_generator(generator: GestureGenerator, text: np.ndarray, audio: np.ndarr
         expressions.append(out.expressions)
         tokens.append(out.tokens)
         va[t] = out.va_prob
-    return Generated(np.concatenate(poses), np.concatenate(trans), np.concatenate(expressions), va, step_ms,
-                     np.stack(tokens))
+    return Generated(
+        np.concatenate(poses), np.concatenate(trans), np.concatenate(expressions), va, step_ms, np.stack(tokens)
+    )
 
 
 def _step_audio(pcm: np.ndarray, step: int) -> np.ndarray:
     out = np.zeros(STEP_SAMPLES, np.float32)
-    piece = pcm[step * STEP_SAMPLES:(step + 1) * STEP_SAMPLES]
+    piece = pcm[step * STEP_SAMPLES : (step + 1) * STEP_SAMPLES]
     out[: len(piece)] = piece
     return out
 
@@ -156,15 +159,15 @@ def listening_speaking_ratio(speeds: np.ndarray, step_vad: np.ndarray) -> float:
 
 
 @torch.no_grad()
-def codec_mpjpe_mm(codecs: dict[str, GestureCodec], poses: np.ndarray, trans: np.ndarray, expressions: np.ndarray,
-                   skeleton: Skeleton) -> float:
+def codec_mpjpe_mm(
+    codecs: dict[str, GestureCodec], poses: np.ndarray, trans: np.ndarray, expressions: np.ndarray, skeleton: Skeleton
+) -> float:
     """MPJPE (mm, 55 joints, zero translation, 25 fps) of the motion through all three codecs (encode -> decode)."""
     features = motion_to_features(poses, trans, expressions, MOTION_FPS)  # region -> (T, F)
     recon = {r: reconstruct(codecs[r], torch.from_numpy(features[r])).numpy() for r in REGIONS}
     n = len(recon["upper"])
     pred, _, _ = features_to_motion(recon["upper"], recon["lower"], recon["face"])
-    return 1000 * M.mpjpe_m(M.joints_zero_translation(pred, skeleton),
-                            M.joints_zero_translation(poses[:n], skeleton))
+    return 1000 * M.mpjpe_m(M.joints_zero_translation(pred, skeleton), M.joints_zero_translation(poses[:n], skeleton))
 
 
 def relative_error(value: float, reference: float) -> float:
@@ -183,7 +186,9 @@ class HeldoutSession:
     poses: np.ndarray  # (2T, 55, 3) canonical GT
     trans: np.ndarray
     expressions: np.ndarray
-    gesture_poses: np.ndarray  # (2T, 55, 3) canonical GT without the runtime layer's micro-motion (what the codecs model)
+    gesture_poses: (
+        np.ndarray
+    )  # (2T, 55, 3) canonical GT without the runtime layer's micro-motion (what the codecs model)
 
 
 HELDOUT_DATA_SEED = 0  # scripts/train_default.sh's data seed; its test split is held out of training
@@ -210,15 +215,14 @@ def session_stamp(seed: int) -> str:
 def has_sessions(root: Path, seed: int, count: int) -> bool:
     """`root` holds at least `count` test takes, made by the current generator from `seed`."""
     stamp = root / GENERATOR_STAMP
-    return (stamp.is_file() and stamp.read_text().strip() == session_stamp(seed)
-            and len(_test_takes(root)) >= count)
+    return stamp.is_file() and stamp.read_text().strip() == session_stamp(seed) and len(_test_takes(root)) >= count
 
 
 def ensure_sessions(root: Path, seed: int, numbers: range) -> None:
     """Generate synthetic sessions `numbers` of `seed` into `root`, all in its test split, unless it already holds
     as many test takes made by the current generator from that seed."""
-    from gesture.synth.config import SynthConfig
     from gesture.synth.build import SESSION_MINUTES, generate_sessions
+    from gesture.synth.config import SynthConfig
 
     if has_sessions(root, seed, len(numbers)):
         return
@@ -236,13 +240,16 @@ def _test_takes(root: Path) -> list[Take]:
     return sorted((t for t in find_takes(root) if t.split == "test"), key=_session_order)
 
 
-def load_heldout(root: Path, codecs: dict[str, GestureCodec], n_sessions: int, max_seconds: float) -> list[HeldoutSession]:
+def load_heldout(
+    root: Path, codecs: dict[str, GestureCodec], n_sessions: int, max_seconds: float
+) -> list[HeldoutSession]:
     from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer
 
     takes = _test_takes(root)[:n_sessions]
     if not takes:
-        raise FileNotFoundError(f"{root}: no held-out (test split) synthetic sessions; generate them with "
-                                "python -m gesture.data.synthetic")
+        raise FileNotFoundError(
+            f"{root}: no held-out (test split) synthetic sessions; generate them with python -m gesture.data.synthetic"
+        )
     tokenizer = SpeechTokenizer.load(DEFAULT_CHECKPOINT)
     max_steps = int(max_seconds * STEP_HZ)
     sessions = []
@@ -259,13 +266,19 @@ def load_heldout(root: Path, codecs: dict[str, GestureCodec], n_sessions: int, m
         pcm = load_audio(wav, SAMPLE_RATE_HZ)[: int(seconds * SAMPLE_RATE_HZ)]
         native = M.load_speech(wav)
         speech = M.SpeechAudio(native.pcm[: int(seconds * native.sample_rate_hz)], native.sample_rate_hz)
-        sessions.append(HeldoutSession(take, tok, pcm, speech, poses, trans, motion.expressions[: 2 * n],
-                                       gesture_poses))
+        sessions.append(
+            HeldoutSession(take, tok, pcm, speech, poses, trans, motion.expressions[: 2 * n], gesture_poses)
+        )
     return sessions
 
 
-def evaluate_heldout(generator: GestureGenerator, codecs: dict[str, GestureCodec], sessions: list[HeldoutSession],
-                     mean_speed: np.ndarray, skeleton: Skeleton) -> dict:
+def evaluate_heldout(
+    generator: GestureGenerator,
+    codecs: dict[str, GestureCodec],
+    sessions: list[HeldoutSession],
+    mean_speed: np.ndarray,
+    skeleton: Skeleton,
+) -> dict:
     from gesture.eval.scores import evaluate_motion
 
     rows = []
@@ -274,36 +287,43 @@ def evaluate_heldout(generator: GestureGenerator, codecs: dict[str, GestureCodec
         gt = M.MotionClip(s.poses, s.trans, s.expressions, MOTION_FPS)
         scores = evaluate_motion(gen.clip(), gt, s.speech, mean_speed, skeleton, encoders=())
         vad = s.tokens.vad
-        rows.append({
-            "session": s.take.take_id,
-            "seconds": s.tokens.num_steps / STEP_HZ,
-            "beat_align": scores["beat_align"], "beat_align_gt": scores["beat_align_gt"],
-            "l1div": scores["l1div"], "l1div_gt": scores["l1div_gt"],
-            "va_accuracy": float(((gen.va_prob > 0.5) == (vad > 0)).mean()),
-            "va_gt_active_fraction": float(vad.mean()),
-            "energy_ratio": listening_speaking_ratio(frame_speeds(gen.poses, skeleton), vad),
-            "energy_ratio_gt": listening_speaking_ratio(frame_speeds(s.poses, skeleton), vad),
-            "codec_mpjpe_mm": codec_mpjpe_mm(codecs, s.gesture_poses, s.trans, s.expressions, skeleton),
-            "codec_mpjpe_whole_motion_mm": codec_mpjpe_mm(codecs, s.poses, s.trans, s.expressions, skeleton),
-            "step_ms_median": float(np.median(gen.step_ms)),
-        })
+        rows.append(
+            {
+                "session": s.take.take_id,
+                "seconds": s.tokens.num_steps / STEP_HZ,
+                "beat_align": scores["beat_align"],
+                "beat_align_gt": scores["beat_align_gt"],
+                "l1div": scores["l1div"],
+                "l1div_gt": scores["l1div_gt"],
+                "va_accuracy": float(((gen.va_prob > 0.5) == (vad > 0)).mean()),
+                "va_gt_active_fraction": float(vad.mean()),
+                "energy_ratio": listening_speaking_ratio(frame_speeds(gen.poses, skeleton), vad),
+                "energy_ratio_gt": listening_speaking_ratio(frame_speeds(s.poses, skeleton), vad),
+                "codec_mpjpe_mm": codec_mpjpe_mm(codecs, s.gesture_poses, s.trans, s.expressions, skeleton),
+                "codec_mpjpe_whole_motion_mm": codec_mpjpe_mm(codecs, s.poses, s.trans, s.expressions, skeleton),
+                "step_ms_median": float(np.median(gen.step_ms)),
+            }
+        )
     mean = {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0] if k != "session"}
     return {"sessions": rows, "mean": mean}
 
 
-def evaluate_beat2_playback(generator: GestureGenerator, dialogue_cfg, opts: SuiteOptions, mean_speed: np.ndarray,
-                            skeleton: Skeleton) -> dict:
+def evaluate_beat2_playback(
+    generator: GestureGenerator, dialogue_cfg, opts: SuiteOptions, mean_speed: np.ndarray, skeleton: Skeleton
+) -> dict:
     """The real clip's speech played by the playback backend (silent user), its steps driving the generator."""
-    from gesture.eval.scores import evaluate_motion
     from dialogue.listener import UserListener
     from dialogue.local_backend import load_speech_tokenizer
     from dialogue.playback_backend import PlaybackBackend, recording_utterance
+    from gesture.eval.scores import evaluate_motion
 
     gt = M.load_motion_clip(opts.beat2_motion).at_fps(MOTION_FPS)
     n_steps = len(gt.poses) // FRAMES_PER_STEP
-    backend = PlaybackBackend(recording_utterance(str(opts.beat2_wav), None),
-                              UserListener(dialogue_cfg.vad, dialogue_cfg.echo, None),
-                              load_speech_tokenizer(dialogue_cfg.speech_tokenizer))
+    backend = PlaybackBackend(
+        recording_utterance(str(opts.beat2_wav), None),
+        UserListener(dialogue_cfg.vad, dialogue_cfg.echo, None),
+        load_speech_tokenizer(dialogue_cfg.speech_tokenizer),
+    )
     silence = np.zeros(STEP_SAMPLES, np.float32)
     steps = [backend.step(silence) for _ in range(n_steps)]
     backend.close()
@@ -315,12 +335,17 @@ def evaluate_beat2_playback(generator: GestureGenerator, dialogue_cfg, opts: Sui
     gt_clip = M.MotionClip(poses, trans, gt.expressions[: 2 * n_steps], MOTION_FPS)
     scores = evaluate_motion(gen.clip(), gt_clip, M.load_speech(opts.beat2_wav), mean_speed, skeleton, encoders=())
     keys = ("beat_align", "beat_align_gt", "l1div", "l1div_gt", "beat_align_corrected", "beat_align_corrected_gt")
-    return {"clip": opts.beat2_motion.stem, "seconds": n_steps / STEP_HZ,
-            "text_tokens": int((text >= 0).sum()), **{k: scores[k] for k in keys}}
+    return {
+        "clip": opts.beat2_motion.stem,
+        "seconds": n_steps / STEP_HZ,
+        "text_tokens": int((text >= 0).sum()),
+        **{k: scores[k] for k in keys},
+    }
 
 
-def evaluate_collapse(generator: GestureGenerator, sessions: list[HeldoutSession], minutes: float,
-                      skeleton: Skeleton) -> dict:
+def evaluate_collapse(
+    generator: GestureGenerator, sessions: list[HeldoutSession], minutes: float, skeleton: Skeleton
+) -> dict:
     """Mean joint speed over a long session (held-out conditions looped) against its first minute's."""
     n = int(minutes * 60 * STEP_HZ)
     reps = math.ceil(n / sum(s.tokens.num_steps for s in sessions))
@@ -330,10 +355,16 @@ def evaluate_collapse(generator: GestureGenerator, sessions: list[HeldoutSession
     gen = run_generator(generator, text, audio, pcm[: n * STEP_SAMPLES])
     speeds = frame_speeds(gen.poses, skeleton)
     first = speeds[: int(60 * MOTION_FPS)].mean()
-    minute_means = [float(speeds[i:i + 60 * MOTION_FPS].mean()) for i in range(0, len(speeds), 60 * MOTION_FPS)]
-    return {"minutes": minutes, "mean_speed": float(speeds.mean()), "first_minute_speed": float(first),
-            "per_minute_speed": minute_means, "rel_change": float(speeds.mean() / first - 1.0),
-            "step_ms_median": float(np.median(gen.step_ms)), "step_ms_p95": float(np.percentile(gen.step_ms, 95))}
+    minute_means = [float(speeds[i : i + 60 * MOTION_FPS].mean()) for i in range(0, len(speeds), 60 * MOTION_FPS)]
+    return {
+        "minutes": minutes,
+        "mean_speed": float(speeds.mean()),
+        "first_minute_speed": float(first),
+        "per_minute_speed": minute_means,
+        "rel_change": float(speeds.mean() / first - 1.0),
+        "step_ms_median": float(np.median(gen.step_ms)),
+        "step_ms_p95": float(np.percentile(gen.step_ms, 95)),
+    }
 
 
 def _pad_steps(pcm: np.ndarray, n_steps: int) -> np.ndarray:
@@ -387,17 +418,24 @@ def run_suite(opts: SuiteOptions, progress=print) -> dict:
     generator.close()
     return {
         "checkpoints": {"lm": str(gesture_cfg.lm_checkpoint), "codecs": str(gesture_cfg.codec_checkpoints)},
-        "sampling": {"temperature": gesture_cfg.temperature, "top_p_temporal": gesture_cfg.top_p_temporal,
-                     "top_p_depth": gesture_cfg.top_p_depth, "cfg_scale": gesture_cfg.cfg_scale,
-                     "dtype": gesture_cfg.dtype, "seed": opts.seed},
-        "heldout_synthetic": heldout, "beat2_playback": beat2, "no_collapse": collapse,
-        "goals": check_goals(heldout, collapse), "wall_s": time.perf_counter() - started,
+        "sampling": {
+            "temperature": gesture_cfg.temperature,
+            "top_p_temporal": gesture_cfg.top_p_temporal,
+            "top_p_depth": gesture_cfg.top_p_depth,
+            "cfg_scale": gesture_cfg.cfg_scale,
+            "dtype": gesture_cfg.dtype,
+            "seed": opts.seed,
+        },
+        "heldout_synthetic": heldout,
+        "beat2_playback": beat2,
+        "no_collapse": collapse,
+        "goals": check_goals(heldout, collapse),
+        "wall_s": time.perf_counter() - started,
     }
 
 
 def format_table(report: dict) -> str:
-    m, b, c, g = (report["heldout_synthetic"]["mean"], report["beat2_playback"], report["no_collapse"],
-                  report["goals"])
+    m, b, c, g = (report["heldout_synthetic"]["mean"], report["beat2_playback"], report["no_collapse"], report["goals"])
     ok = {k: ("met" if v else "NOT met") for k, v in g["met"].items()}
     lines = [
         "| measure | generated | ground truth | goal | status |",
@@ -429,24 +467,34 @@ def _json_safe(value):
     return value
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
     defaults = SuiteOptions()
     parser = argparse.ArgumentParser(description="Quality report of the shipped default agent.")
     parser.add_argument("--suite", choices=["default"], default="default")
     parser.add_argument("--json", action="store_true", help="print one JSON object after the table")
     parser.add_argument("--config", type=Path, default=defaults.config, help="app config with the gesture: section")
-    parser.add_argument("--synthetic", type=Path, default=defaults.synthetic_root,
-                        help="synthetic directory whose test split is held out")
+    parser.add_argument(
+        "--synthetic",
+        type=Path,
+        default=defaults.synthetic_root,
+        help="synthetic directory whose test split is held out",
+    )
     parser.add_argument("--sessions", type=int, default=defaults.heldout_sessions)
     parser.add_argument("--seconds", type=float, default=defaults.heldout_seconds, help="per held-out session")
     parser.add_argument("--collapse-minutes", type=float, default=defaults.collapse_minutes)
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--out", type=Path, help="also write the JSON report here")
     args = parser.parse_args(argv)
-    opts = dataclasses.replace(defaults, config=args.config, synthetic_root=args.synthetic,
-                               heldout_sessions=args.sessions, heldout_seconds=args.seconds,
-                               collapse_minutes=args.collapse_minutes, seed=args.seed)
+    opts = dataclasses.replace(
+        defaults,
+        config=args.config,
+        synthetic_root=args.synthetic,
+        heldout_sessions=args.sessions,
+        heldout_seconds=args.seconds,
+        collapse_minutes=args.collapse_minutes,
+        seed=args.seed,
+    )
     try:
         report = _json_safe(run_suite(opts, progress=lambda msg: print(msg, file=sys.stderr)))
     except (FileNotFoundError, ValueError) as err:
@@ -458,4 +506,3 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.out:
         args.out.write_text(json.dumps(report, indent=1))
     return 0
-

@@ -16,15 +16,16 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
 import sys
+from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
-from core.threads import limit_threads
-from core.timing import MOTION_FPS
+from ecas.core.paths import data_root
+from ecas.core.threads import limit_threads
+from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from gesture.synth.calibration import CALIBRATION_JSON, MicroNoise, load_calibration, to_json
 from gesture.synth.recording import motion_for_recording, recognised_words
@@ -38,7 +39,7 @@ INITIAL_FAST_RATIO = 0.3  # the quick noise's size, relative to the slow one's, 
 MAX_FAST_RATIO = 3.0
 MAX_CUTOFF_HZ = 3.0  # faster noise is jitter, not motion (a joint whose planned motion is already too spread, the
 # shoulders, would otherwise buy its median speed with it)
-REAL_CLIP = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2" / "2_scott_0_1_1"
+REAL_CLIP = data_root() / "beat2" / "2_scott_0_1_1"
 
 
 def rotation_residuals(poses: np.ndarray) -> np.ndarray:
@@ -57,8 +58,12 @@ def joint_stats(poses: np.ndarray, fps: float = MOTION_FPS) -> tuple[np.ndarray,
     from gesture.eval.realism import angular_speeds, fast_share, inner, pose_diversity, velocity_power
 
     poses = inner(poses[:, list(MICRO_JOINTS)])
-    return (rotation_residuals(poses).std(0), pose_diversity(poses), np.median(angular_speeds(poses, fps), axis=0),
-            fast_share(*velocity_power(poses, fps)))
+    return (
+        rotation_residuals(poses).std(0),
+        pose_diversity(poses),
+        np.median(angular_speeds(poses, fps), axis=0),
+        fast_share(*velocity_power(poses, fps)),
+    )
 
 
 def noise_median_speed(std: np.ndarray, hz: float, n: int = 4000, fps: float = MOTION_FPS) -> float:
@@ -75,8 +80,14 @@ def synthetic_stats(wav: Path, words, seeds, params) -> tuple[np.ndarray, ...]:
     return tuple(np.mean([s[k] for s in stats], 0) for k in range(len(stats[0])))
 
 
-def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print,
-        keep: Mapping[int, MicroNoise] | None = None) -> dict[int, MicroNoise]:
+def fit(
+    clip: Path,
+    seeds=(0, 1, 2),
+    iterations: int = 3,
+    words=None,
+    log=print,
+    keep: Mapping[int, MicroNoise] | None = None,
+) -> dict[int, MicroNoise]:
     """Per joint of MICRO_JOINTS, its noise; ``words``: the clip's timed words (else recognised); ``keep``: joints
     held at the given noise throughout (the others are fitted with them in place)."""
     from gesture.eval.realism import load_clip
@@ -93,9 +104,11 @@ def fit(clip: Path, seeds=(0, 1, 2), iterations: int = 3, words=None, log=print,
     for it in range(iterations):
         params = {j: MicroNoise(std[k], float(hz[k]), float(fast[k])) for k, j in enumerate(MICRO_JOINTS)} | keep
         _, got_div, got_med, got_fast = synthetic_stats(wav, words, seeds, params)
-        log(f"iteration {it}: diversity ratio {np.round(got_div / real_div, 2).tolist()}, "
+        log(
+            f"iteration {it}: diversity ratio {np.round(got_div / real_div, 2).tolist()}, "
             f"median speed ratio {np.round(got_med / real_med, 2).tolist()}, "
-            f"quick share ratio {np.round(got_fast / real_fast, 2).tolist()}")
+            f"quick share ratio {np.round(got_fast / real_fast, 2).tolist()}"
+        )
         std = np.maximum(std * np.clip(real_div / got_div, 1 / MAX_STEP, MAX_STEP)[:, None], STD_FLOOR * real_std)
         hz = np.minimum(hz * np.clip(real_med / got_med, 1 / MAX_STEP, MAX_STEP), MAX_CUTOFF_HZ)
         fast = np.minimum(fast * np.clip(real_fast / got_fast, 1 / MAX_STEP, MAX_STEP), MAX_FAST_RATIO)
@@ -108,9 +121,15 @@ def main(argv=None) -> int:
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip without extension (.npz and .wav)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--iterations", type=int, default=10, help="the three statistics settle within 1-3 %% by 8")
-    p.add_argument("--joints", type=int, nargs="+", choices=MICRO_JOINTS, metavar="J",
-                   help="refit only these joints, holding the others at calibration.json's (default: all of "
-                        f"{list(MICRO_JOINTS)})")
+    p.add_argument(
+        "--joints",
+        type=int,
+        nargs="+",
+        choices=MICRO_JOINTS,
+        metavar="J",
+        help="refit only these joints, holding the others at calibration.json's (default: all of "
+        f"{list(MICRO_JOINTS)})",
+    )
     p.add_argument("--out", default=str(CALIBRATION_JSON))
     args = p.parse_args(argv)
     clip = Path(args.clip)

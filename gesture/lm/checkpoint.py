@@ -6,13 +6,12 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Optional
 
 import torch
 from safetensors.torch import load_file, save_file
 
-from core.config import build_dataclass
-from core.spec import ConditionSpec
+from ecas.core.config import build_dataclass
+from ecas.core.spec import ConditionSpec
 from gesture.lm.config import LMConfig
 from gesture.lm.model import GestureLM
 
@@ -37,7 +36,7 @@ def read_meta(directory: Path) -> dict:
     return json.loads(path.read_text())
 
 
-def load_lm(directory: Path, expected_spec: Optional[ConditionSpec] = None) -> GestureLM:
+def load_lm(directory: Path, expected_spec: ConditionSpec | None = None) -> GestureLM:
     """Build the model of a checkpoint directory; with `expected_spec`, refuse a checkpoint trained on another
     conditioning vocabulary (a clear `SpecMismatchError`, never garbage tokens)."""
     meta = read_meta(directory)
@@ -54,16 +53,24 @@ def load_lm(directory: Path, expected_spec: Optional[ConditionSpec] = None) -> G
 def _strip_prefix(key: str) -> str:
     for prefix in CHECKPOINT_PREFIXES:
         if key.startswith(prefix):
-            return key[len(prefix):]
+            return key[len(prefix) :]
     return key
 
 
-def save_train_state(directory: Path, optimizer: torch.optim.Optimizer, scheduler, generator: torch.Generator,
-                     losses: list[dict]) -> None:
-    torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-                "generator": generator.get_state(), "losses": losses}, Path(directory) / "train_state.pt")
+def save_train_state(
+    directory: Path, optimizer: torch.optim.Optimizer, scheduler, generator: torch.Generator, losses: list[dict]
+) -> None:
+    torch.save(
+        {
+            "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "generator": generator.get_state(),
+            "losses": losses,
+        },
+        Path(directory) / "train_state.pt",
+    )
 
 
-def load_train_state(directory: Path) -> Optional[dict]:
+def load_train_state(directory: Path) -> dict | None:
     path = Path(directory) / "train_state.pt"
     return torch.load(path, weights_only=False) if path.exists() else None

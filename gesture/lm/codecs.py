@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from core.body import REGIONS
+from ecas.core.body import REGIONS
 from gesture.codec.checkpoint import load_codec
 from gesture.codec.model import GestureCodec
 
@@ -16,12 +16,15 @@ def load_codecs(directory: Path) -> dict[str, GestureCodec]:
     directory = Path(directory)
     missing = [r for r in REGIONS if not (directory / r).is_dir()]
     if missing:
-        raise FileNotFoundError(f"gesture.codec_checkpoints: {directory / missing[0]} is missing "
-                                f"(expected one codec checkpoint per region: {', '.join(REGIONS)})")
+        raise FileNotFoundError(
+            f"gesture.codec_checkpoints: {directory / missing[0]} is missing "
+            f"(expected one codec checkpoint per region: {', '.join(REGIONS)})"
+        )
     return {region: load_codec(directory / region) for region in REGIONS}
 
 
 def codebook_vectors(codecs: dict[str, GestureCodec]) -> list[torch.Tensor]:
     """20 (card, code_dim) codebooks, before the quantizer's output projection."""
-    return [layer._codebook.embedding.detach().clone()
-            for region in REGIONS for layer in codecs[region].quantizer.vq.layers]
+    return [
+        layer._codebook.embedding.detach().clone() for region in REGIONS for layer in codecs[region].quantizer.vq.layers
+    ]

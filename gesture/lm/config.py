@@ -1,12 +1,12 @@
 """The gesture LM's options: its sizes (`LMConfig`, stored inside every LM checkpoint), its training recipe
-(`LMTrainConfig`) and a configs/lm/*.yaml file (`LMFileConfig`)."""
+(`LMTrainConfig`) and a ecas/configs/lm/*.yaml file (`LMFileConfig`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from core.config import ConfigError
-from core.spec import MOSHI_SPEC, ConditionSpec
+from ecas.core.config import ConfigError
+from ecas.core.spec import MOSHI_SPEC, ConditionSpec
 
 N_UPPER_LEVELS = 8
 N_LOWER_LEVELS = 8
@@ -38,8 +38,20 @@ class LMConfig:
     va_use_face_logits: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("d_model", "temporal_layers", "temporal_heads", "depth_layers", "depth_heads", "ffn_hidden",
-                     "self_context_steps", "cross_context_steps", "n_upper", "card", "code_dim", "n_speakers"):
+        for name in (
+            "d_model",
+            "temporal_layers",
+            "temporal_heads",
+            "depth_layers",
+            "depth_heads",
+            "ffn_hidden",
+            "self_context_steps",
+            "cross_context_steps",
+            "n_upper",
+            "card",
+            "code_dim",
+            "n_speakers",
+        ):
             if getattr(self, name) < 1:
                 raise ConfigError(f"lm.{name}: must be >= 1, got {getattr(self, name)}")
         for name in ("n_lower", "n_face"):
@@ -106,9 +118,20 @@ class LMTrainConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("lr", "grad_clip", "batch_size", "window_steps", "epochs", "steps_per_epoch", "tau_start",
-                     "tau_end", "infonce_segment_steps", "infonce_temperature", "lr_step_epochs",
-                     "checkpoint_every_epochs"):
+        for name in (
+            "lr",
+            "grad_clip",
+            "batch_size",
+            "window_steps",
+            "epochs",
+            "steps_per_epoch",
+            "tau_start",
+            "tau_end",
+            "infonce_segment_steps",
+            "infonce_temperature",
+            "lr_step_epochs",
+            "checkpoint_every_epochs",
+        ):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"train.{name}: must be > 0, got {getattr(self, name)}")
         if self.window_steps < self.infonce_segment_steps:
@@ -122,7 +145,7 @@ class LMTrainConfig:
 
 @dataclass(frozen=True)
 class LMFileConfig:
-    """A configs/lm/*.yaml file: model sizes, the conditioning vocabulary, and the training recipe."""
+    """A ecas/configs/lm/*.yaml file: model sizes, the conditioning vocabulary, and the training recipe."""
 
     lm: LMConfig = field(default_factory=LMConfig)
     condition: ConditionSpec = MOSHI_SPEC

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.spec import ConditionSpec
+from ecas.core.spec import ConditionSpec
 
 SPEC_FILE = "spec.json"
 REQUIRED_KEYS = ("gesture_tokens", "text_tokens", "audio_codes", "vad", "speaker")
@@ -49,9 +49,14 @@ def _load(path: Path, n_levels: int) -> _Recording:
         missing = [k for k in REQUIRED_KEYS if k not in data]
         if missing:
             raise ValueError(f"{path}: missing key {missing[0]} (need {', '.join(REQUIRED_KEYS)})")
-        rec = _Recording(data["gesture_tokens"].astype(np.int64), data["text_tokens"].astype(np.int64),
-                         data["audio_codes"].astype(np.int64), data["vad"].astype(np.float32),
-                         int(data["speaker"]), float(data["va_weight"]) if "va_weight" in data else 1.0)
+        rec = _Recording(
+            data["gesture_tokens"].astype(np.int64),
+            data["text_tokens"].astype(np.int64),
+            data["audio_codes"].astype(np.int64),
+            data["vad"].astype(np.float32),
+            int(data["speaker"]),
+            float(data["va_weight"]) if "va_weight" in data else 1.0,
+        )
     steps = rec.tokens.shape[1]
     if rec.tokens.shape[0] != n_levels:
         raise ValueError(f"{path}: gesture_tokens must have {n_levels} levels, got {rec.tokens.shape[0]}")
@@ -88,19 +93,45 @@ class LMDataset:
             rec = usable[i]
             start = int(torch.randint(rec.tokens.shape[1] - steps + 1, (), generator=generator))
             window = slice(start, start + steps)
-            rows.append((rec.tokens[:, window], rec.text[window], rec.audio[:, window], rec.vad[window],
-                         rec.speaker, rec.va_weight))
+            rows.append(
+                (
+                    rec.tokens[:, window],
+                    rec.text[window],
+                    rec.audio[:, window],
+                    rec.vad[window],
+                    rec.speaker,
+                    rec.va_weight,
+                )
+            )
         tokens, text, audio, vad, speaker, weight = zip(*rows)
-        return LMBatch(torch.from_numpy(np.stack(tokens)), torch.from_numpy(np.stack(text)),
-                       torch.from_numpy(np.stack(audio)), torch.from_numpy(np.stack(vad)),
-                       torch.tensor(speaker), torch.tensor(weight, dtype=torch.float32))
+        return LMBatch(
+            torch.from_numpy(np.stack(tokens)),
+            torch.from_numpy(np.stack(text)),
+            torch.from_numpy(np.stack(audio)),
+            torch.from_numpy(np.stack(vad)),
+            torch.tensor(speaker),
+            torch.tensor(weight, dtype=torch.float32),
+        )
 
 
-def write_recording(path: Path, gesture_tokens: np.ndarray, text_tokens: np.ndarray, audio_codes: np.ndarray,
-                    vad: np.ndarray, speaker: int, va_weight: float = 1.0) -> None:
-    np.savez_compressed(path, gesture_tokens=gesture_tokens.astype(np.int16), text_tokens=text_tokens.astype(np.int32),
-                        audio_codes=audio_codes.astype(np.int16), vad=vad.astype(np.uint8),
-                        speaker=np.int64(speaker), va_weight=np.float32(va_weight))
+def write_recording(
+    path: Path,
+    gesture_tokens: np.ndarray,
+    text_tokens: np.ndarray,
+    audio_codes: np.ndarray,
+    vad: np.ndarray,
+    speaker: int,
+    va_weight: float = 1.0,
+) -> None:
+    np.savez_compressed(
+        path,
+        gesture_tokens=gesture_tokens.astype(np.int16),
+        text_tokens=text_tokens.astype(np.int32),
+        audio_codes=audio_codes.astype(np.int16),
+        vad=vad.astype(np.uint8),
+        speaker=np.int64(speaker),
+        va_weight=np.float32(va_weight),
+    )
 
 
 def write_spec(directory: Path, spec: ConditionSpec) -> None:

@@ -46,5 +46,7 @@ def embed_or_zero(table: nn.Embedding, tokens: torch.Tensor) -> torch.Tensor:
 def check_token_range(tokens: torch.Tensor, upper: int, what: str) -> None:
     """Raise a clear error when a token is outside {−1, 0..upper-1} (a vocabulary mismatch, not a crash later)."""
     if tokens.numel() and (int(tokens.min()) < EMPTY_TOKEN or int(tokens.max()) >= upper):
-        raise ValueError(f"{what}: tokens must be in [-1, {upper - 1}], got range "
-                         f"[{int(tokens.min())}, {int(tokens.max())}]; is the condition spec right?")
+        raise ValueError(
+            f"{what}: tokens must be in [-1, {upper - 1}], got range "
+            f"[{int(tokens.min())}, {int(tokens.max())}]; is the condition spec right?"
+        )

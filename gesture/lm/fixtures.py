@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from core.spec import ConditionSpec
+from ecas.core.spec import ConditionSpec
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecConfig, RegionSizes
 from gesture.codec.model import GestureCodec
@@ -15,8 +15,20 @@ TINY_SPEC = ConditionSpec(name="tiny", text_vocab=40, audio_card=12, embed_dim=2
 
 
 def tiny_lm_config(**overrides) -> LMConfig:
-    sizes = dict(d_model=32, temporal_layers=2, temporal_heads=2, depth_layers=2, depth_heads=1, ffn_hidden=48,
-                 self_context_steps=6, cross_context_steps=9, card=16, code_dim=4, n_speakers=5, dropout=0.0)
+    sizes = dict(
+        d_model=32,
+        temporal_layers=2,
+        temporal_heads=2,
+        depth_layers=2,
+        depth_heads=1,
+        ffn_hidden=48,
+        self_context_steps=6,
+        cross_context_steps=9,
+        card=16,
+        code_dim=4,
+        n_speakers=5,
+        dropout=0.0,
+    )
     return LMConfig(**{**sizes, **overrides})
 
 
@@ -27,8 +39,16 @@ def tiny_lm(seed: int = 0, spec: ConditionSpec = TINY_SPEC, **overrides) -> Gest
 
 def tiny_codec_config(card: int = 16, code_dim: int = 4) -> CodecConfig:
     regions = {"upper": RegionSizes(8, 1, 2), "lower": RegionSizes(8, 1, 2), "face": RegionSizes(4, 1, 2)}
-    return CodecConfig(latent_dim=16, n_filters=8, dim_feedforward=32, codebook_size=card, codebook_dim=code_dim,
-                       kmeans_iters=1, dropout=0.0, regions=regions)
+    return CodecConfig(
+        latent_dim=16,
+        n_filters=8,
+        dim_feedforward=32,
+        codebook_size=card,
+        codebook_dim=code_dim,
+        kmeans_iters=1,
+        dropout=0.0,
+        regions=regions,
+    )
 
 
 def tiny_codecs(seed: int = 0, card: int = 16, code_dim: int = 4) -> dict[str, GestureCodec]:

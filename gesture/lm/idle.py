@@ -33,12 +33,21 @@ class _Cursor:
 class IdleGate:
     """`IdleGate(upper (n_upper, T), face (n_face, T'), ...)`; `push_audio(pcm)`, then `apply(tokens)` per step."""
 
-    def __init__(self, upper: np.ndarray, face: np.ndarray, upper_levels: slice, face_levels: slice,
-                 window_samples: int = 5760, l2_threshold: float = 0.5, rewind_below: int = 12) -> None:
+    def __init__(
+        self,
+        upper: np.ndarray,
+        face: np.ndarray,
+        upper_levels: slice,
+        face_levels: slice,
+        window_samples: int = 5760,
+        l2_threshold: float = 0.5,
+        rewind_below: int = 12,
+    ) -> None:
         for name, tokens, levels in (("upper", upper, upper_levels), ("face", face, face_levels)):
             if tokens.ndim != 2 or tokens.shape[0] != levels.stop - levels.start or tokens.shape[1] < 1:
-                raise ValueError(f"idle {name} tokens: expected ({levels.stop - levels.start}, T>=1), "
-                                 f"got {tokens.shape}")
+                raise ValueError(
+                    f"idle {name} tokens: expected ({levels.stop - levels.start}, T>=1), got {tokens.shape}"
+                )
         self.cursors = {"upper": _Cursor(np.asarray(upper, np.int64)), "face": _Cursor(np.asarray(face, np.int64))}
         self.levels = {"upper": upper_levels, "face": face_levels}
         self.window = np.zeros(window_samples, np.float32)  # ring of the latest agent samples
@@ -54,10 +63,10 @@ class IdleGate:
 
     def push_audio(self, pcm: np.ndarray) -> None:
         """Append one step of agent PCM (float, [-1, 1])."""
-        pcm = np.asarray(pcm, np.float32).ravel()[-len(self.window):]
+        pcm = np.asarray(pcm, np.float32).ravel()[-len(self.window) :]
         first = min(len(pcm), len(self.window) - self.write)
-        self.window[self.write:self.write + first] = pcm[:first]
-        self.window[:len(pcm) - first] = pcm[first:]
+        self.window[self.write : self.write + first] = pcm[:first]
+        self.window[: len(pcm) - first] = pcm[first:]
         self.write = (self.write + len(pcm)) % len(self.window)
 
     @property

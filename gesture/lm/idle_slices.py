@@ -1,6 +1,6 @@
 """Idle token slices for the runtime's idle gate (MIBURI-FACTS section 5) from tokenized training recordings.
 
-    python -m gesture.lm.idle_slices --data runs/default/lm_data --out checkpoints/gesture_lm/idle
+    python -m gesture.lm.idle_slices --data runs/default/lm_data --out ecas/checkpoints/gesture_lm/idle
 
 The slice is the longest listening stretch (voice activity 0 at every step) among the recordings of
 `gesture.lm.data`, trimmed by `--trim-steps` at both ends so that it starts and ends inside the listening
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -33,7 +33,7 @@ def longest_silent_run(vad: np.ndarray) -> tuple[int, int]:
 
 def find_idle_slice(recordings: Sequence[Path], trim_steps: int) -> tuple[np.ndarray, str]:
     """The (K, T) gesture tokens of the longest trimmed listening stretch, and the recording it comes from."""
-    best: Optional[tuple[int, np.ndarray, str]] = None
+    best: tuple[int, np.ndarray, str] | None = None
     for path in recordings:
         with np.load(path) as data:
             start, stop = longest_silent_run(data["vad"])
@@ -48,12 +48,12 @@ def find_idle_slice(recordings: Sequence[Path], trim_steps: int) -> tuple[np.nda
 def write_idle_slices(out: Path, tokens: np.ndarray, n_upper: int, n_lower: int) -> None:
     """tokens (K, T): levels [0, n_upper) are the upper body, [n_upper + n_lower, K) the face."""
     out.mkdir(parents=True, exist_ok=True)
-    parts = {"upper": tokens[:n_upper], "face": tokens[n_upper + n_lower:]}
+    parts = {"upper": tokens[:n_upper], "face": tokens[n_upper + n_lower :]}
     for name, part in parts.items():
         np.savez(out / IDLE_FILES[name], **{"0": part[None]})  # (1, levels, T)
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="directory of tokenized recordings (*.npz)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the two slice files")

@@ -78,8 +78,16 @@ class _LayerNorms(nn.Module):
 class TemporalLayer(_LayerNorms):
     """One temporal decoder layer: causal SA over `self_context` steps, causal CA over `cross_context` steps."""
 
-    def __init__(self, dim: int, heads: int, ffn_hidden: int, self_context: int, cross_context: int,
-                 rope: RotaryEmbedding, dropout: float) -> None:
+    def __init__(
+        self,
+        dim: int,
+        heads: int,
+        ffn_hidden: int,
+        self_context: int,
+        cross_context: int,
+        rope: RotaryEmbedding,
+        dropout: float,
+    ) -> None:
         super().__init__(dim)
         self.heads, self.self_context, self.cross_context = heads, self_context, cross_context
         self.rope = rope
@@ -89,8 +97,14 @@ class TemporalLayer(_LayerNorms):
         self.gating = GatedFFN(dim, ffn_hidden)
         self.ca_gating = GatedFFN(dim, ffn_hidden)
 
-    def _attend(self, proj: AttentionProjections, query: torch.Tensor, source: torch.Tensor,
-                positions: torch.Tensor, context: int) -> torch.Tensor:
+    def _attend(
+        self,
+        proj: AttentionProjections,
+        query: torch.Tensor,
+        source: torch.Tensor,
+        positions: torch.Tensor,
+        context: int,
+    ) -> torch.Tensor:
         q = self.rope.rotate(split_heads(proj.in_projs[0](query), self.heads), positions)  # (B, H, T, Dh)
         k = self.rope.rotate(split_heads(proj.key_projs[0](source), self.heads), positions)
         v = split_heads(proj.val_projs[0](source), self.heads)
@@ -98,8 +112,9 @@ class TemporalLayer(_LayerNorms):
         out = windowed_attention(q, k, v, allowed, self.dropout if self.training else 0.0)
         return proj.out_projs[0](merge_heads(out))
 
-    def forward(self, x: torch.Tensor, audio_memory: torch.Tensor, text_memory: torch.Tensor,
-                positions: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, audio_memory: torch.Tensor, text_memory: torch.Tensor, positions: torch.Tensor
+    ) -> torch.Tensor:
         """x, audio_memory, text_memory (B, T, d); memory step j sits at the same absolute position as step j."""
         h = self.norm1(x)
         x = x + self._drop(self._attend(self.self_attn, h, h, positions, self.self_context))
@@ -121,8 +136,9 @@ class DepthLayer(_LayerNorms):
     position 0 at every position (MIBURI-FACTS section 9). Rows in `cross_masked` attend to nothing and give zeros.
     """
 
-    def __init__(self, dim: int, heads: int, ffn_hidden: int, positions: int, rope: RotaryEmbedding,
-                 dropout: float) -> None:
+    def __init__(
+        self, dim: int, heads: int, ffn_hidden: int, positions: int, rope: RotaryEmbedding, dropout: float
+    ) -> None:
         super().__init__(dim)
         self.heads = heads
         self.rope = rope
@@ -132,8 +148,14 @@ class DepthLayer(_LayerNorms):
         self.gating = nn.ModuleList([GatedFFN(dim, ffn_hidden) for _ in range(positions)])
         self.ca_gating = nn.ModuleList([GatedFFN(dim, ffn_hidden) for _ in range(positions)])
 
-    def forward(self, z: torch.Tensor, audio_memory: torch.Tensor, text_memory: torch.Tensor,
-                key_valid: torch.Tensor, cross_masked: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self,
+        z: torch.Tensor,
+        audio_memory: torch.Tensor,
+        text_memory: torch.Tensor,
+        key_valid: torch.Tensor,
+        cross_masked: torch.Tensor,
+    ) -> torch.Tensor:
         """z (N, S, d); memories (N, 1, d); key_valid (N, S) False at pad inputs; cross_masked (S,) bool."""
         positions = torch.arange(z.shape[1], device=z.device)
         h = self.norm1(z)
@@ -151,8 +173,9 @@ class DepthLayer(_LayerNorms):
         z = z + self._drop(self._per_position_ffn(self.ca_gating, mixed))
         return z + self._drop(self._per_position_ffn(self.gating, self.norm2(z)))
 
-    def _cross(self, proj: AttentionProjections, query: torch.Tensor, memory: torch.Tensor,
-               cross_masked: torch.Tensor) -> torch.Tensor:
+    def _cross(
+        self, proj: AttentionProjections, query: torch.Tensor, memory: torch.Tensor, cross_masked: torch.Tensor
+    ) -> torch.Tensor:
         q = split_heads(per_position_linear(query, stacked(proj.in_projs)), self.heads)  # (N, H, S, Dh)
         k = split_heads(proj.key_projs[0](memory), self.heads)  # (N, H, 1, Dh)
         v = split_heads(proj.val_projs[0](memory), self.heads)

@@ -29,8 +29,9 @@ def summed_latents(one_hot: torch.Tensor, codebooks: list[torch.Tensor]) -> torc
     return sum(one_hot[:, :, i] @ book for i, book in enumerate(codebooks))
 
 
-def segment_info_nce(target: torch.Tensor, predicted: torch.Tensor, segment_steps: int,
-                     temperature: float) -> torch.Tensor:
+def segment_info_nce(
+    target: torch.Tensor, predicted: torch.Tensor, segment_steps: int, temperature: float
+) -> torch.Tensor:
     """target, predicted (B, T, D): mean-pool segments of `segment_steps`, L2-normalise, InfoNCE in the
     target → prediction direction with diagonal positives. Trailing steps that fill no segment are dropped."""
     segments = target.shape[1] // segment_steps
@@ -38,7 +39,7 @@ def segment_info_nce(target: torch.Tensor, predicted: torch.Tensor, segment_step
         raise ValueError(f"InfoNCE needs at least {segment_steps} steps per window, got {target.shape[1]}")
 
     def pooled(x: torch.Tensor) -> torch.Tensor:
-        x = x[:, :segments * segment_steps].unflatten(1, (segments, segment_steps)).mean(2)  # (B, n, D)
+        x = x[:, : segments * segment_steps].unflatten(1, (segments, segment_steps)).mean(2)  # (B, n, D)
         return F.normalize(x.flatten(0, 1), dim=-1)  # (B*n, D)
 
     anchors, candidates = pooled(target), pooled(predicted)
@@ -46,9 +47,16 @@ def segment_info_nce(target: torch.Tensor, predicted: torch.Tensor, segment_step
     return F.cross_entropy(similarity, torch.arange(len(similarity), device=similarity.device))
 
 
-def contrastive_loss(logits: torch.Tensor, targets: torch.Tensor, codebooks: list[torch.Tensor],
-                     level_groups: list[slice], tau: float, segment_steps: int, temperature: float,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
+def contrastive_loss(
+    logits: torch.Tensor,
+    targets: torch.Tensor,
+    codebooks: list[torch.Tensor],
+    level_groups: list[slice],
+    tau: float,
+    segment_steps: int,
+    temperature: float,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """Hard Gumbel-softmax samples of the code logits (pad excluded) are turned into each codec's summed latent
     and compared with the ground truth's by segment InfoNCE; the mean over codecs."""
     card = codebooks[0].shape[0]
@@ -58,9 +66,16 @@ def contrastive_loss(logits: torch.Tensor, targets: torch.Tensor, codebooks: lis
     hard = F.one_hot(soft.argmax(-1), card).to(soft.dtype)
     samples = hard + soft - soft.detach()  # straight-through
     truth = F.one_hot(targets.transpose(1, 2).clamp(0, card - 1), card).to(soft.dtype)  # (B, T, K, card)
-    losses = [segment_info_nce(summed_latents(truth[:, :, g], codebooks[g]),
-                               summed_latents(samples[:, :, g], codebooks[g]), segment_steps, temperature)
-              for g in level_groups if g.stop > g.start]
+    losses = [
+        segment_info_nce(
+            summed_latents(truth[:, :, g], codebooks[g]),
+            summed_latents(samples[:, :, g], codebooks[g]),
+            segment_steps,
+            temperature,
+        )
+        for g in level_groups
+        if g.stop > g.start
+    ]
     return torch.stack(losses).mean()
 
 

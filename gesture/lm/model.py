@@ -13,12 +13,11 @@ its own LayerNorm); a decoder layer runs self-attention, then the cross-attentio
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import torch
 from torch import nn
 
-from core.spec import ConditionSpec
+from ecas.core.spec import ConditionSpec
 from gesture.lm.config import LMConfig
 from gesture.lm.embeddings import GestureEmbedding, check_token_range, embed_or_zero
 from gesture.lm.layers import LAYER_NORM_EPS, DepthLayer, TemporalLayer
@@ -31,7 +30,7 @@ EMA_USAGE_EPS = 1e-5
 class LMOutput:
     logits: torch.Tensor  # (B, T, K, card + 1): level 0 from the temporal classifier, 1..K-1 from the depth
     temporal: torch.Tensor  # (B, T, d) temporal transformer output before `out_norm`
-    va_logit: Optional[torch.Tensor]  # (B, T) voice-activity logit, None without a VA head
+    va_logit: torch.Tensor | None  # (B, T) voice-activity logit, None without a VA head
 
 
 class LayerStack(nn.Module):
@@ -74,17 +73,28 @@ class GestureLM(nn.Module):
         self.sizes, self.spec = sizes, spec
         d, card, levels, depth = sizes.d_model, sizes.card, sizes.n_levels, sizes.n_depth
         self.audio_procemb = nn.ModuleList(
-            [nn.Embedding(spec.audio_card, spec.embed_dim) for _ in range(spec.n_audio_codebooks)])
+            [nn.Embedding(spec.audio_card, spec.embed_dim) for _ in range(spec.n_audio_codebooks)]
+        )
         self.text_procemb = nn.Embedding(spec.text_vocab, spec.embed_dim)
         self.gesture_codec_layers = nn.ModuleList([CodecCodebookLevel(card, sizes.code_dim) for _ in range(levels)])
         self.temporal_gemb = nn.ModuleList([GestureEmbedding(card, sizes.code_dim) for _ in range(levels)])
         self.temporal_gproj = nn.ModuleList([nn.Linear(sizes.code_dim, d, bias=False) for _ in range(levels)])
         self.spk_tempemb = nn.Embedding(sizes.n_speakers, d)
         temporal_rope = RotaryEmbedding(d // sizes.temporal_heads, sizes.rope_period)
-        self.temporal_transformer = LayerStack([
-            TemporalLayer(d, sizes.temporal_heads, sizes.ffn_hidden, sizes.self_context_steps,
-                          sizes.cross_context_steps, temporal_rope, sizes.dropout)
-            for _ in range(sizes.temporal_layers)])
+        self.temporal_transformer = LayerStack(
+            [
+                TemporalLayer(
+                    d,
+                    sizes.temporal_heads,
+                    sizes.ffn_hidden,
+                    sizes.self_context_steps,
+                    sizes.cross_context_steps,
+                    temporal_rope,
+                    sizes.dropout,
+                )
+                for _ in range(sizes.temporal_layers)
+            ]
+        )
         self.out_norm = nn.LayerNorm(d, eps=LAYER_NORM_EPS)
         self.temporal_classifier = nn.Linear(d, card + 1, bias=False)
         self.depformer_in = nn.ModuleList([nn.Linear(d, d, bias=False) for _ in range(depth)])
@@ -92,9 +102,12 @@ class GestureLM(nn.Module):
         self.depformer_gemb = nn.ModuleList([GestureEmbedding(card, sizes.code_dim) for _ in range(depth)])
         self.depformer_gproj = nn.ModuleList([nn.Linear(sizes.code_dim, d, bias=False) for _ in range(depth)])
         depth_rope = RotaryEmbedding(d // sizes.depth_heads, sizes.rope_period)
-        self.depth_transformer = LayerStack([
-            DepthLayer(d, sizes.depth_heads, sizes.ffn_hidden, depth, depth_rope, sizes.dropout)
-            for _ in range(sizes.depth_layers)])
+        self.depth_transformer = LayerStack(
+            [
+                DepthLayer(d, sizes.depth_heads, sizes.ffn_hidden, depth, depth_rope, sizes.dropout)
+                for _ in range(sizes.depth_layers)
+            ]
+        )
         self.depformer_classifier = nn.ModuleList([nn.Linear(d, card + 1, bias=False) for _ in range(depth)])
         self.temp_condproj = nn.ModuleList([nn.Linear(spec.embed_dim, d) for _ in range(2)])  # audio, text
         self.dep_condproj = nn.ModuleList([nn.Linear(spec.embed_dim, d) for _ in range(2)])
@@ -103,8 +116,15 @@ class GestureLM(nn.Module):
         if sizes.va_head:
             va_in = d + (card + 1 if sizes.va_use_face_logits else 0)
             self.vad_predictor = nn.Sequential(
-                nn.LayerNorm(va_in, eps=LAYER_NORM_EPS), nn.Linear(va_in, d), nn.GELU(), nn.Linear(d, 128),
-                nn.GELU(), nn.Linear(128, d), nn.GELU(), nn.Linear(d, 1))
+                nn.LayerNorm(va_in, eps=LAYER_NORM_EPS),
+                nn.Linear(va_in, d),
+                nn.GELU(),
+                nn.Linear(d, 128),
+                nn.GELU(),
+                nn.Linear(128, d),
+                nn.GELU(),
+                nn.Linear(d, 1),
+            )
         self.register_buffer("cross_masked", self._cross_masked_positions(), persistent=False)
 
     def _cross_masked_positions(self) -> torch.Tensor:
@@ -123,8 +143,15 @@ class GestureLM(nn.Module):
         return audio_sum, embed_or_zero(self.text_procemb, text)
 
     # ----- forward ------------------------------------------------------------------------------------------
-    def forward(self, tokens: torch.Tensor, text: torch.Tensor, audio: torch.Tensor, speaker: torch.Tensor,
-                history: Optional[torch.Tensor] = None, offset: int = 0) -> LMOutput:
+    def forward(
+        self,
+        tokens: torch.Tensor,
+        text: torch.Tensor,
+        audio: torch.Tensor,
+        speaker: torch.Tensor,
+        history: torch.Tensor | None = None,
+        offset: int = 0,
+    ) -> LMOutput:
         """Teacher-forced pass. tokens (B, K, T): the step's own tokens (depth inputs; may hold pad);
         history (B, K, T): temporal inputs, default `shift_history(tokens)`; text (B, T); audio (B, Q, T);
         speaker (B,); offset: absolute step index of t = 0 (RoPE positions)."""
@@ -142,8 +169,14 @@ class GestureLM(nn.Module):
         x = sum(proj(emb(history[:, k])) for k, (emb, proj) in enumerate(zip(self.temporal_gemb, self.temporal_gproj)))
         return x + self.spk_tempemb(speaker)[:, None]
 
-    def temporal_forward(self, history: torch.Tensor, audio_sum: torch.Tensor, text_emb: torch.Tensor,
-                         speaker: torch.Tensor, offset: int = 0) -> torch.Tensor:
+    def temporal_forward(
+        self,
+        history: torch.Tensor,
+        audio_sum: torch.Tensor,
+        text_emb: torch.Tensor,
+        speaker: torch.Tensor,
+        offset: int = 0,
+    ) -> torch.Tensor:
         x = self.gesture_input(history, speaker)  # (B, T, d)
         audio_memory, text_memory = self.temp_condproj[0](audio_sum), self.temp_condproj[1](text_emb)
         positions = torch.arange(offset, offset + x.shape[1], device=x.device)
@@ -151,14 +184,27 @@ class GestureLM(nn.Module):
             x = layer(x, audio_memory, text_memory, positions)
         return x
 
-    def depth_forward(self, temporal_normed: torch.Tensor, tokens: torch.Tensor, audio_sum: torch.Tensor,
-                      text_emb: torch.Tensor, speaker: torch.Tensor) -> torch.Tensor:
+    def depth_forward(
+        self,
+        temporal_normed: torch.Tensor,
+        tokens: torch.Tensor,
+        audio_sum: torch.Tensor,
+        text_emb: torch.Tensor,
+        speaker: torch.Tensor,
+    ) -> torch.Tensor:
         """All depth positions of all steps at once -> logits (B, T, K-1, card+1) of levels 1..K-1."""
         batch, steps, d = temporal_normed.shape
         depth = self.sizes.n_depth
         inputs = tokens[:, :depth].transpose(1, 2)  # (B, T, S)
-        z = torch.stack([self.depformer_in[k](temporal_normed) + self.depformer_gproj[k](self.depformer_gemb[k](inputs[..., k]))
-                         + self.spk_depemb[k](speaker)[:, None] for k in range(depth)], dim=2)  # (B, T, S, d)
+        z = torch.stack(
+            [
+                self.depformer_in[k](temporal_normed)
+                + self.depformer_gproj[k](self.depformer_gemb[k](inputs[..., k]))
+                + self.spk_depemb[k](speaker)[:, None]
+                for k in range(depth)
+            ],
+            dim=2,
+        )  # (B, T, S, d)
         z = z.flatten(0, 1)  # (B*T, S, d)
         audio_memory = self.dep_condproj[0](audio_sum).flatten(0, 1)[:, None]  # (B*T, 1, d)
         text_memory = self.dep_condproj[1](text_emb).flatten(0, 1)[:, None]
@@ -172,7 +218,7 @@ class GestureLM(nn.Module):
         """temporal (B, T, d), logits (B, T, K, V) -> (B, T) voice-activity logit."""
         features = temporal
         if self.sizes.va_use_face_logits:
-            face = logits[:, :, self.sizes.face_levels.start:].flatten(2)  # (B, T, n_face*V)
+            face = logits[:, :, self.sizes.face_levels.start :].flatten(2)  # (B, T, n_face*V)
             features = torch.cat([temporal, self.vad_face_proj(face)], dim=-1)
         return self.vad_predictor(features).squeeze(-1)
 

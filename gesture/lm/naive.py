@@ -52,8 +52,9 @@ class NaiveStepper(StreamingModule[NaiveState]):
         """(1, ...) conditioned tensor -> (B, ...) with the null row all −1."""
         return x if self.batch == 1 else torch.cat([x, torch.full_like(x, -1)])
 
-    def begin_step(self, history: torch.Tensor, text: int, audio: torch.Tensor,
-                   guidance: float | None = None) -> torch.Tensor:
+    def begin_step(
+        self, history: torch.Tensor, text: int, audio: torch.Tensor, guidance: float | None = None
+    ) -> torch.Tensor:
         state = self._streaming_state
         state.history.append((history.clone(), torch.tensor(text), audio.clone()))
         hist = torch.stack([h for h, _, _ in state.history], dim=-1)[None].expand(self.batch, -1, -1)  # (B, K, W)
@@ -72,7 +73,9 @@ class NaiveStepper(StreamingModule[NaiveState]):
 
     def depth_logits(self, k: int, token: int, guidance: float | None = None) -> torch.Tensor:
         self.current[:, k] = token
-        logits = self.model.depth_forward(self.normed, self.current, *self.current_cond, self.speaker.expand(self.batch))
+        logits = self.model.depth_forward(
+            self.normed, self.current, *self.current_cond, self.speaker.expand(self.batch)
+        )
         return self._rows_or_guided(logits[:, 0, k], guidance)  # (B, V) or (V,)
 
     @staticmethod

@@ -52,7 +52,7 @@ def top_p_mask(probs: torch.Tensor, top_p: float) -> torch.Tensor:
         return mask
     mask = probs > threshold
     tied = (probs == threshold).nonzero().view(-1)  # ascending token ids
-    mask[tied[:kept_count - int(mask.sum())]] = True
+    mask[tied[: kept_count - int(mask.sum())]] = True
     return mask
 
 
@@ -67,8 +67,9 @@ def draw(probs: torch.Tensor, mask: torch.Tensor, uniform: float) -> int:
     return token
 
 
-def sample_top_p(logits: torch.Tensor, temperature: float, top_p: float,
-                 generator: torch.Generator | None = None) -> int:
+def sample_top_p(
+    logits: torch.Tensor, temperature: float, top_p: float, generator: torch.Generator | None = None
+) -> int:
     """(V,) logits -> one token id drawn with temperature and top-p."""
     probs = tempered_probs(logits, temperature)
     uniform = float(torch.rand((), dtype=torch.float64, generator=generator))

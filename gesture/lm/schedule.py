@@ -39,8 +39,9 @@ def gumbel_tau(epoch: float, cfg: LMTrainConfig) -> float:
     return _ramp(epoch, cfg.warmup_epochs, cfg.warmup_epochs + cfg.tau_epochs, cfg.tau_start, cfg.tau_end)
 
 
-def drop_conditions(text: torch.Tensor, audio: torch.Tensor, probability: float,
-                    generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def drop_conditions(
+    text: torch.Tensor, audio: torch.Tensor, probability: float, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """text (B, T), audio (B, Q, T): per sample, set text and (independently) audio to −1 with `probability`."""
     batch = text.shape[0]
     drop_text = torch.rand(batch, generator=generator) < probability
@@ -50,11 +51,12 @@ def drop_conditions(text: torch.Tensor, audio: torch.Tensor, probability: float,
     return text, audio
 
 
-def pad_inputs(tokens: torch.Tensor, sizes: LMConfig, rate: float,
-               generator: torch.Generator | None = None) -> torch.Tensor:
+def pad_inputs(
+    tokens: torch.Tensor, sizes: LMConfig, rate: float, generator: torch.Generator | None = None
+) -> torch.Tensor:
     """tokens (B, K, T): for a `rate` share of samples, lower and face levels become pad (a new tensor)."""
     chosen = torch.rand(tokens.shape[0], generator=generator) < rate  # (B,)
     levels = torch.zeros(tokens.shape[1], dtype=torch.bool)
-    levels[sizes.n_upper:] = True  # lower then face
+    levels[sizes.n_upper :] = True  # lower then face
     mask = chosen[:, None, None] & levels[None, :, None]  # (B, K, 1)
     return torch.where(mask, torch.full_like(tokens, sizes.pad_token), tokens)

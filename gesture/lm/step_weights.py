@@ -14,8 +14,8 @@ constants stay float32.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -78,22 +78,30 @@ def temporal_weights(layer: TemporalLayer, model: GestureLM, cast: Cast) -> Temp
     null_text = ca_t.val_projs[0](model.temp_condproj[1].bias)
     null_ca = layer.ca_gating(F.silu(F.linear(torch.cat([null_audio, null_text]), mix, b_m)))
     return TemporalWeights(
-        norm1=norm_params(layer.norm1), norm2=norm_params(layer.norm2),
+        norm1=norm_params(layer.norm1),
+        norm2=norm_params(layer.norm2),
         norm3=(norm_params(layer.norm3[0]), norm_params(layer.norm3[1])),
         qkv=cast(torch.cat([sa.in_projs[0].weight, sa.key_projs[0].weight, sa.val_projs[0].weight])),
         out=cast(sa.out_projs[0].weight),
         cross_q=cast(torch.cat([ca_a.in_projs[0].weight, ca_t.in_projs[0].weight])),
-        mix=cast(mix), mix_bias=b_m.detach().clone(),
-        ca_in=cast(layer.ca_gating.linear_in.weight), ca_out=cast(layer.ca_gating.linear_out.weight),
-        ffn_in=cast(layer.gating.linear_in.weight), ffn_out=cast(layer.gating.linear_out.weight),
-        null_ca=null_ca.detach())
+        mix=cast(mix),
+        mix_bias=b_m.detach().clone(),
+        ca_in=cast(layer.ca_gating.linear_in.weight),
+        ca_out=cast(layer.ca_gating.linear_out.weight),
+        ffn_in=cast(layer.gating.linear_in.weight),
+        ffn_out=cast(layer.gating.linear_out.weight),
+        null_ca=null_ca.detach(),
+    )
 
 
 def memory_kv(model: GestureLM, cast: Cast) -> StepWeight:
     """(2 * L * 2d, d): for the audio memory, then the text memory, every temporal layer's key then value rows."""
     layers = model.temporal_transformer.layers
-    blocks = [(layer.cross_attns[i].key_projs[0].weight, layer.cross_attns[i].val_projs[0].weight)
-              for i in range(2) for layer in layers]
+    blocks = [
+        (layer.cross_attns[i].key_projs[0].weight, layer.cross_attns[i].val_projs[0].weight)
+        for i in range(2)
+        for layer in layers
+    ]
     return cast(torch.cat([torch.cat(block) for block in blocks]))
 
 
@@ -101,9 +109,18 @@ def depth_fold(layer: DepthLayer, open_positions: list[int], d: int) -> torch.Te
     """(len(open)*d, 2d): pre-activation of the cross-attention block per open position from [m_audio, m_text]."""
     w_m = layer.memory_projs[0].weight
     ca_a, ca_t = layer.cross_attns
-    return torch.cat([torch.cat([w_m[:, :d] @ ca_a.out_projs[s].weight @ ca_a.val_projs[0].weight,
-                                 w_m[:, d:] @ ca_t.out_projs[s].weight @ ca_t.val_projs[0].weight], dim=1)
-                      for s in open_positions])
+    return torch.cat(
+        [
+            torch.cat(
+                [
+                    w_m[:, :d] @ ca_a.out_projs[s].weight @ ca_a.val_projs[0].weight,
+                    w_m[:, d:] @ ca_t.out_projs[s].weight @ ca_t.val_projs[0].weight,
+                ],
+                dim=1,
+            )
+            for s in open_positions
+        ]
+    )
 
 
 def depth_weights(layer: DepthLayer, model: GestureLM, cast: Cast) -> DepthWeights:
@@ -114,16 +131,31 @@ def depth_weights(layer: DepthLayer, model: GestureLM, cast: Cast) -> DepthWeigh
     null_text = ca_t.val_projs[0](model.dep_condproj[1].bias)
     const = []
     for s in range(positions):
-        pre = b_m if masked[s] else b_m + w_m[:, :d] @ ca_a.out_projs[s](null_audio) + w_m[:, d:] @ ca_t.out_projs[s](null_text)
+        pre = (
+            b_m
+            if masked[s]
+            else b_m + w_m[:, :d] @ ca_a.out_projs[s](null_audio) + w_m[:, d:] @ ca_t.out_projs[s](null_text)
+        )
         const.append(layer.ca_gating[s](F.silu(pre)))
     return DepthWeights(
-        norm1=norm_params(layer.norm1), norm2=norm_params(layer.norm2),
-        qkv=[cast(torch.cat([rotate_rows(sa.in_projs[s].weight, s, layer.rope.freqs, layer.heads),
-                             rotate_rows(sa.key_projs[s].weight, s, layer.rope.freqs, layer.heads),
-                             sa.val_projs[s].weight])) for s in range(positions)],
+        norm1=norm_params(layer.norm1),
+        norm2=norm_params(layer.norm2),
+        qkv=[
+            cast(
+                torch.cat(
+                    [
+                        rotate_rows(sa.in_projs[s].weight, s, layer.rope.freqs, layer.heads),
+                        rotate_rows(sa.key_projs[s].weight, s, layer.rope.freqs, layer.heads),
+                        sa.val_projs[s].weight,
+                    ]
+                )
+            )
+            for s in range(positions)
+        ],
         out=[cast(w.weight) for w in sa.out_projs],
         ffn_in=[cast(g.linear_in.weight) for g in layer.gating],
         ffn_out=[cast(g.linear_out.weight) for g in layer.gating],
         ca_in=[cast(g.linear_in.weight) for g in layer.ca_gating],
         ca_out=[cast(g.linear_out.weight) for g in layer.ca_gating],
-        const_ca=torch.stack(const).detach())
+        const_ca=torch.stack(const).detach(),
+    )

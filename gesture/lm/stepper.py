@@ -26,8 +26,8 @@ from gesture.lm.embeddings import table_index
 from gesture.lm.layers import LAYER_NORM_EPS
 from gesture.lm.model import GestureLM
 from gesture.lm.step_weights import depth_fold, depth_weights, memory_kv, norm_params, temporal_weights
-from gesture.nn.rope import rope_tables, rotate_with_tables
 from gesture.nn.kv_cache import RingKVCache
+from gesture.nn.rope import rope_tables, rotate_with_tables
 from gesture.nn.streaming import StreamingModule, StreamingState
 from gesture.nn.weights import StepWeight, check_form, gated_ffn, step_weight
 
@@ -84,10 +84,12 @@ class LMStepper(StreamingModule[LMStepState]):
     def _prepare_tables(self, model: GestureLM) -> None:
         card = self.sizes.card
         self.row_stride = card + 2  # codes, pad, zero row
-        self.gesture_table = torch.cat([proj(emb.full_table()) for emb, proj in
-                                        zip(model.temporal_gemb, model.temporal_gproj)])  # (K*(card+2), d)
-        self.depth_gesture_table = torch.cat([proj(emb.full_table()) for emb, proj in
-                                              zip(model.depformer_gemb, model.depformer_gproj)])  # (S*(card+2), d)
+        self.gesture_table = torch.cat(
+            [proj(emb.full_table()) for emb, proj in zip(model.temporal_gemb, model.temporal_gproj)]
+        )  # (K*(card+2), d)
+        self.depth_gesture_table = torch.cat(
+            [proj(emb.full_table()) for emb, proj in zip(model.depformer_gemb, model.depformer_gproj)]
+        )  # (S*(card+2), d)
         self.level_offsets = torch.arange(self.sizes.n_levels) * self.row_stride
         self.spk_temp_table = model.spk_tempemb.weight.detach().clone()
         self.spk_depth_table = torch.stack([e.weight.detach() for e in model.spk_depemb], dim=1)  # (n_spk, S, d)
@@ -115,16 +117,19 @@ class LMStepper(StreamingModule[LMStepState]):
         layers = model.depth_transformer.layers
         self.open_positions = [s for s in range(self.sizes.n_depth) if not masked[s]]
         self.depth = [depth_weights(layer, model, self._cast) for layer in layers]
-        self.depth_fold = self._cast(torch.cat([depth_fold(layer, self.open_positions, self.sizes.d_model)
-                                                for layer in layers]))
+        self.depth_fold = self._cast(
+            torch.cat([depth_fold(layer, self.open_positions, self.sizes.d_model) for layer in layers])
+        )
         biases = [layer.memory_projs[0].bias.detach() for layer in layers]
         self.depth_mix_bias = torch.stack(biases)[:, None]  # (L, 1, d)
         self.classifiers = [self._cast(c.weight) for c in model.depformer_classifier]
 
     def _init_streaming_state(self, batch_size: int) -> LMStepState:
         if batch_size != self.batch:
-            raise ValueError(f"this step path runs {self.batch} rows ({'guided' if self.batch == 2 else 'unguided'}), "
-                             f"not {batch_size}")
+            raise ValueError(
+                f"this step path runs {self.batch} rows ({'guided' if self.batch == 2 else 'unguided'}), "
+                f"not {batch_size}"
+            )
         s, b, d = self.sizes, self.batch, self.sizes.d_model
         heads, head_dim = s.temporal_heads, d // s.temporal_heads
         depth_dtype = self.depth[0].qkv[0].out_dtype if self.depth else F32
@@ -140,7 +145,9 @@ class LMStepper(StreamingModule[LMStepState]):
             cross_rings=[RingKVCache(2, heads, head_dim, s.cross_context_steps) for _ in range(s.temporal_layers)],
             temporal_ca=temporal_ca,
             depth_kv=torch.zeros(s.depth_layers, b, s.n_depth, 2 * d, dtype=depth_dtype),
-            depth_z=torch.zeros(b, s.n_depth, d), depth_ca=depth_ca)
+            depth_z=torch.zeros(b, s.n_depth, d),
+            depth_ca=depth_ca,
+        )
         self._make_views(state)
         return state
 
@@ -150,7 +157,7 @@ class LMStepper(StreamingModule[LMStepState]):
         heads = s.depth_heads
 
         def prefix(i: int, k: int, half: slice) -> torch.Tensor:  # (B, H, k+1, Dh)
-            return st.depth_kv[i, :, :k + 1, half].unflatten(-1, (heads, -1)).transpose(1, 2)
+            return st.depth_kv[i, :, : k + 1, half].unflatten(-1, (heads, -1)).transpose(1, 2)
 
         self._kv_slots = [[st.depth_kv[i, :, k] for k in range(s.n_depth)] for i in range(s.depth_layers)]
         self._keys = [[prefix(i, k, slice(0, d)) for k in range(s.n_depth)] for i in range(s.depth_layers)]
@@ -180,8 +187,9 @@ class LMStepper(StreamingModule[LMStepState]):
         audio_row = self.audio_table.index_select(0, codes).sum(0) + self.audio_bias
         return torch.stack([audio_row, text_row])
 
-    def begin_step(self, history: torch.Tensor, text: int, audio: torch.Tensor,
-                   guidance: float | None = None) -> torch.Tensor:
+    def begin_step(
+        self, history: torch.Tensor, text: int, audio: torch.Tensor, guidance: float | None = None
+    ) -> torch.Tensor:
         """history (K,) tokens of the previous step (−1 at the start); text: token id or −1; audio (Q,) codes or −1.
         Runs the temporal transformer; returns level-0 logits (B, card+1), or (card+1,) guided by `guidance`."""
         d, st = self.sizes.d_model, self.state

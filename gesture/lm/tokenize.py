@@ -25,20 +25,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 import torch
 
-from core.body import REGIONS
-from core.errors import DataError
-from core.spec import ConditionSpec
-from core.threads import limit_threads
-from core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer
 from dialogue.text_vocab import LOCAL_SPEC, word_token
+from ecas.core.body import REGIONS
+from ecas.core.errors import DataError
+from ecas.core.spec import ConditionSpec
+from ecas.core.threads import limit_threads
+from ecas.core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from gesture.body.motion import canonicalize
 from gesture.body.regions import motion_to_features
 from gesture.codec.model import GestureCodec
@@ -70,8 +70,9 @@ class TokenizedTake:
 
 
 @torch.no_grad()
-def encode_motion(codecs: dict[str, GestureCodec], poses: np.ndarray, trans: np.ndarray,
-                  expressions: np.ndarray) -> np.ndarray:
+def encode_motion(
+    codecs: dict[str, GestureCodec], poses: np.ndarray, trans: np.ndarray, expressions: np.ndarray
+) -> np.ndarray:
     """25 fps motion (T frames) -> (20, T // 2) gesture tokens, canonicalised at its first frame."""
     frames = len(poses) // FRAMES_PER_STEP * FRAMES_PER_STEP
     poses, trans = canonicalize(poses[:frames], trans[:frames])
@@ -124,7 +125,7 @@ def vad_from_words(words: Sequence[Word], n_steps: int) -> np.ndarray:
 # ---------------------------------------------------------------- a take
 
 
-def agent_audio_path(take: Take) -> Optional[Path]:
+def agent_audio_path(take: Take) -> Path | None:
     if take.audio_path is None:
         return None
     dyadic = take.audio_path.with_name(f"{take.take_id}{AGENT_WAV_SUFFIX}.wav")
@@ -148,11 +149,14 @@ def agent_words(take: Take, pcm_24k: np.ndarray) -> list[Word]:
     if not any("speaker" in w for w in entries):
         return read_words(take)
     names = {*AGENT_SPEAKER_NAMES, take.speaker}
-    return [Word(str(w["word"]).strip(), float(w["start"]), float(w["end"])) for w in entries
-            if str(w.get("speaker", "")) in names]
+    return [
+        Word(str(w["word"]).strip(), float(w["start"]), float(w["end"]))
+        for w in entries
+        if str(w.get("speaker", "")) in names
+    ]
 
 
-def frame_vad_of(take: Take) -> Optional[np.ndarray]:
+def frame_vad_of(take: Take) -> np.ndarray | None:
     """The per-frame agent voice activity stored in the motion npz (25 fps), if any."""
     with np.load(take.motion_path, allow_pickle=False) as data:
         return np.asarray(data[VAD_KEY]) if VAD_KEY in data.files else None
@@ -178,14 +182,21 @@ def tokenize_take(take: Take, codecs: dict[str, GestureCodec], tokenizer: Speech
 # ---------------------------------------------------------------- a directory
 
 
-def speaker_indices(takes: Sequence[Take], fixed: Optional[int]) -> dict[str, int]:
+def speaker_indices(takes: Sequence[Take], fixed: int | None) -> dict[str, int]:
     names = sorted({t.speaker for t in takes})
     return {name: fixed for name in names} if fixed is not None else {name: i for i, name in enumerate(names)}
 
 
-def tokenize_directory(root: Path, codecs_dir: Path, out_dir: Path, splits: Sequence[str] = ("train",),
-                       speaker: Optional[int] = None, tokenizer_path: Path = DEFAULT_CHECKPOINT,
-                       spec: ConditionSpec = LOCAL_SPEC, progress=iter) -> dict:
+def tokenize_directory(
+    root: Path,
+    codecs_dir: Path,
+    out_dir: Path,
+    splits: Sequence[str] = ("train",),
+    speaker: int | None = None,
+    tokenizer_path: Path = DEFAULT_CHECKPOINT,
+    spec: ConditionSpec = LOCAL_SPEC,
+    progress=iter,
+) -> dict:
     """Write one npz per take of `splits` plus spec.json and speakers.json; returns a summary."""
     takes = [t for t in find_takes(root) if t.split in splits]
     if not takes:
@@ -197,14 +208,25 @@ def tokenize_directory(root: Path, codecs_dir: Path, out_dir: Path, splits: Sequ
     steps, active = 0, 0
     for take in progress(takes):
         tok = tokenize_take(take, codecs, tokenizer)
-        write_recording(out_dir / f"{take.take_id}.npz", tok.gesture_tokens, tok.text_tokens, tok.audio_codes,
-                        tok.vad, speakers[take.speaker])
+        write_recording(
+            out_dir / f"{take.take_id}.npz",
+            tok.gesture_tokens,
+            tok.text_tokens,
+            tok.audio_codes,
+            tok.vad,
+            speakers[take.speaker],
+        )
         steps += tok.num_steps
         active += int(tok.vad.sum())
     write_spec(out_dir, spec)
     (out_dir / SPEAKERS_FILE).write_text(json.dumps(speakers, indent=1))
-    return {"takes": len(takes), "steps": steps, "hours": steps / STEP_HZ / 3600,
-            "vad_active_fraction": active / max(steps, 1), "speakers": speakers}
+    return {
+        "takes": len(takes),
+        "steps": steps,
+        "hours": steps / STEP_HZ / 3600,
+        "vad_active_fraction": active / max(steps, 1),
+        "speakers": speakers,
+    }
 
 
 def main(argv=None) -> int:
@@ -224,11 +246,17 @@ def main(argv=None) -> int:
             print(f"error: {flag} {path}: not a directory", file=sys.stderr)
             return 2
     try:
-        summary = tokenize_directory(args.root, args.codecs, args.out, args.splits, args.speaker,
-                                     args.speech_tokenizer, progress=lambda xs: tqdm(xs, desc="takes", unit="take"))
+        summary = tokenize_directory(
+            args.root,
+            args.codecs,
+            args.out,
+            args.splits,
+            args.speaker,
+            args.speech_tokenizer,
+            progress=lambda xs: tqdm(xs, desc="takes", unit="take"),
+        )
     except (DataError, FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(json.dumps(summary))
     return 0
-

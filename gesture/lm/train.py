@@ -1,4 +1,4 @@
-"""Train the gesture LM: `python -m gesture.train_lm --config configs/lm/small.yaml --data DIR --out DIR`.
+"""Train the gesture LM: `python -m gesture.train_lm --config ecas/configs/lm/small.yaml --data DIR --out DIR`.
 
 Data: a directory in the format of `gesture.lm.data` (npz per recording + spec.json). Losses and schedules follow
 MIBURI-FACTS section 3 (weighted CE, InfoNCE on Gumbel-softmax latents, voice-activity BCE; warm-up, CFG condition
@@ -17,12 +17,11 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Optional
 
 import torch
 
-from core.config import ConfigError, build_dataclass, load_yaml
-from core.threads import limit_threads
+from ecas.core.config import ConfigError, build_dataclass, load_yaml
+from ecas.core.threads import limit_threads
 from gesture.lm.checkpoint import load_lm, load_train_state, save_lm, save_train_state
 from gesture.lm.config import LMConfig, LMFileConfig, LMTrainConfig
 from gesture.lm.data import LMBatch, LMDataset
@@ -37,8 +36,9 @@ def level_groups(sizes: LMConfig) -> list[slice]:
     return [slice(0, upper), slice(upper, lower), slice(lower, sizes.n_levels)]
 
 
-def training_losses(model: GestureLM, batch: LMBatch, epoch: float, cfg: LMTrainConfig,
-                    generator: torch.Generator, forward=None) -> dict[str, torch.Tensor]:
+def training_losses(
+    model: GestureLM, batch: LMBatch, epoch: float, cfg: LMTrainConfig, generator: torch.Generator, forward=None
+) -> dict[str, torch.Tensor]:
     """All loss terms of one batch at (fractional) `epoch`, with the schedules applied. `forward` is the model or
     its DistributedDataParallel wrapper."""
     sizes = model.sizes
@@ -49,16 +49,24 @@ def training_losses(model: GestureLM, batch: LMBatch, epoch: float, cfg: LMTrain
         out = (forward or model)(inputs.to(device), text.to(device), audio.to(device), batch.speaker.to(device))
     out.logits = out.logits.float()
     out.va_logit = None if out.va_logit is None else out.va_logit.float()
-    batch = LMBatch(*(t.to(device) for t in (batch.tokens, batch.text, batch.audio, batch.vad, batch.speaker,
-                                             batch.va_weight)))
+    batch = LMBatch(
+        *(t.to(device) for t in (batch.tokens, batch.text, batch.audio, batch.vad, batch.speaker, batch.va_weight))
+    )
     weights = level_weights(sizes.n_levels, sizes.face_levels, cfg.face_ce_weight)
     losses = {"ce": token_ce(out.logits, batch.tokens, weights, sizes.pad_token)}
     total = losses["ce"]
     if cfg.infonce_weight > 0:
         codebooks = [model.codebook_vectors(k) for k in range(sizes.n_levels)]
-        losses["infonce"] = contrastive_loss(out.logits, batch.tokens, codebooks, level_groups(sizes),
-                                             gumbel_tau(epoch, cfg), cfg.infonce_segment_steps,
-                                             cfg.infonce_temperature, generator)
+        losses["infonce"] = contrastive_loss(
+            out.logits,
+            batch.tokens,
+            codebooks,
+            level_groups(sizes),
+            gumbel_tau(epoch, cfg),
+            cfg.infonce_segment_steps,
+            cfg.infonce_temperature,
+            generator,
+        )
         total = total + cfg.infonce_weight * losses["infonce"]
     if out.va_logit is not None:
         losses["va"] = voice_activity_bce(out.va_logit, batch.vad, batch.va_weight)
@@ -69,8 +77,10 @@ def training_losses(model: GestureLM, batch: LMBatch, epoch: float, cfg: LMTrain
 
 def save_loss_curve(history: list[dict], path: Path) -> None:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(7, 4))
     for key in ("total", "ce", "infonce", "va"):
         if history and key in history[0]:
@@ -84,8 +94,14 @@ def save_loss_curve(history: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Optional[Path] = None,
-          epochs: Optional[int] = None, progress: bool = True) -> list[dict]:
+def train(
+    file_cfg: LMFileConfig,
+    data_dir: Path,
+    out_dir: Path,
+    codecs_dir: Path | None = None,
+    epochs: int | None = None,
+    progress: bool = True,
+) -> list[dict]:
     """Train (or resume) into out_dir; returns the per-epoch loss history."""
     from tqdm import tqdm
 
@@ -104,7 +120,8 @@ def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Opt
     forward = model
     if world > 1:
         forward = torch.nn.parallel.DistributedDataParallel(  # depth key/value copies 1..18 are never used
-            model, device_ids=[device] if device.type == "cuda" else None, find_unused_parameters=True)
+            model, device_ids=[device] if device.type == "cuda" else None, find_unused_parameters=True
+        )
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, cfg.lr_step_epochs, cfg.lr_gamma)
     history: list[dict] = []
@@ -119,8 +136,12 @@ def train(file_cfg: LMFileConfig, data_dir: Path, out_dir: Path, codecs_dir: Opt
         start_epoch = len(history)
     for epoch in range(start_epoch, epochs):
         sums: dict[str, float] = {}
-        bar = tqdm(range(cfg.steps_per_epoch), desc=f"epoch {epoch + 1}/{epochs}", disable=not progress or rank > 0,
-                   leave=False)
+        bar = tqdm(
+            range(cfg.steps_per_epoch),
+            desc=f"epoch {epoch + 1}/{epochs}",
+            disable=not progress or rank > 0,
+            leave=False,
+        )
         for i in bar:
             batch = dataset.sample(cfg.batch_size, cfg.window_steps, generator)
             losses = training_losses(model, batch, epoch + i / cfg.steps_per_epoch, cfg, generator, forward)
@@ -157,26 +178,26 @@ def _distributed() -> tuple[int, int, torch.device]:
     return rank, world, device
 
 
-def _init_codebooks(model: GestureLM, codecs_dir: Optional[Path]) -> None:
+def _init_codebooks(model: GestureLM, codecs_dir: Path | None) -> None:
     if codecs_dir is None:  # smoke setting: the model's own random tables define the latents
         model.set_codec_codebooks([emb.weight.detach().clone() for emb in model.temporal_gemb], init_embeddings=False)
         return
     from gesture.lm.codecs import codebook_vectors, load_codecs
+
     model.set_codec_codebooks(codebook_vectors(load_codecs(codecs_dir)))
 
 
-def _checkpoint(model, optimizer, scheduler, generator, history, out_dir: Path, epoch: int,
-                cfg: LMTrainConfig) -> None:
+def _checkpoint(model, optimizer, scheduler, generator, history, out_dir: Path, epoch: int, cfg: LMTrainConfig) -> None:
     save_lm(model, out_dir, epoch=epoch, step=epoch * cfg.steps_per_epoch)
     save_train_state(out_dir, optimizer, scheduler, generator, history)
     (out_dir / "losses.json").write_text(json.dumps(history, indent=1))
     save_loss_curve(history, out_dir / "loss_curve.png")
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", type=Path, required=True, help="configs/lm/*.yaml")
+    parser.add_argument("--config", type=Path, required=True, help="ecas/configs/lm/*.yaml")
     parser.add_argument("--data", type=Path, required=True, help="directory of npz recordings (gesture.lm.data)")
     parser.add_argument("--out", type=Path, required=True, help="checkpoint directory (resumed if it exists)")
     parser.add_argument("--codecs", type=Path, default=None, help="directory of the three trained codecs")
@@ -200,4 +221,3 @@ def _usage_error(message: str) -> int:
     """A user mistake: one line, exit code 2."""
     print(f"error: {message}", file=sys.stderr)
     return 2
-

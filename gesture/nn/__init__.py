@@ -17,7 +17,18 @@ from gesture.nn.streaming import StreamingModule, StreamingState
 from gesture.nn.transformer import LayerScale, StreamingTransformer, StreamingTransformerLayer
 
 __all__ = [
-    "LayerScale", "RingKVCache", "RotaryEmbedding", "StreamingConv1d", "StreamingConvTranspose1d",
-    "StreamingModule", "StreamingMultiheadAttention", "StreamingState", "StreamingTransformer",
-    "StreamingTransformerLayer", "apply_rope", "attention_mask", "rope_frequencies", "windowed_attention",
+    "LayerScale",
+    "RingKVCache",
+    "RotaryEmbedding",
+    "StreamingConv1d",
+    "StreamingConvTranspose1d",
+    "StreamingModule",
+    "StreamingMultiheadAttention",
+    "StreamingState",
+    "StreamingTransformer",
+    "StreamingTransformerLayer",
+    "apply_rope",
+    "attention_mask",
+    "rope_frequencies",
+    "windowed_attention",
 ]

@@ -18,8 +18,9 @@ from gesture.nn.rope import RotaryEmbedding, rotate_with_tables
 from gesture.nn.streaming import StreamingModule, StreamingState
 
 
-def attention_mask(q_positions: torch.Tensor, k_positions: torch.Tensor, context: int | None = None,
-                   causal: bool = True) -> torch.Tensor:
+def attention_mask(
+    q_positions: torch.Tensor, k_positions: torch.Tensor, context: int | None = None, causal: bool = True
+) -> torch.Tensor:
     """Boolean (Tq, Tk) mask (or (B, Tq, Tk) for (B, T) positions); True = may attend."""
     delta = q_positions[..., :, None] - k_positions[..., None, :]  # (..., Tq, Tk)
     allowed = (k_positions >= 0)[..., None, :].expand_as(delta)
@@ -30,8 +31,9 @@ def attention_mask(q_positions: torch.Tensor, k_positions: torch.Tensor, context
     return allowed
 
 
-def windowed_attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, allowed: torch.Tensor,
-                       dropout_p: float = 0.0) -> torch.Tensor:
+def windowed_attention(
+    q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, allowed: torch.Tensor, dropout_p: float = 0.0
+) -> torch.Tensor:
     """Scaled dot-product attention; q (B, H, Tq, D), k/v (B, H, Tk, D), `allowed` broadcastable to
     (B, H, Tq, Tk). Fully masked query rows give exactly zero."""
     if allowed.dim() == 3:  # (B, Tq, Tk) -> (B, 1, Tq, Tk)
@@ -59,8 +61,15 @@ class StreamingMultiheadAttention(StreamingModule[SelfAttentionState]):
     `context + max_chunk_steps - 1`, and each call may bring at most `max_chunk_steps` steps.
     """
 
-    def __init__(self, embed_dim: int, num_heads: int, context: int, rope: RotaryEmbedding | None,
-                 dropout: float = 0.0, max_chunk_steps: int = 1) -> None:
+    def __init__(
+        self,
+        embed_dim: int,
+        num_heads: int,
+        context: int,
+        rope: RotaryEmbedding | None,
+        dropout: float = 0.0,
+        max_chunk_steps: int = 1,
+    ) -> None:
         super().__init__()
         if embed_dim % num_heads:
             raise ValueError(f"embed_dim {embed_dim} is not divisible by num_heads {num_heads}")
@@ -78,8 +87,9 @@ class StreamingMultiheadAttention(StreamingModule[SelfAttentionState]):
         cache = RingKVCache(batch_size, self.num_heads, self.head_dim, capacity, device, dtype)
         return SelfAttentionState(batch_size, cache)
 
-    def forward(self, x: torch.Tensor, positions: torch.Tensor,
-                rope_tables: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, positions: torch.Tensor, rope_tables: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> torch.Tensor:
         """x (B, T, E) at absolute `positions` (T,) -> (B, T, E). `rope_tables` are this layer's
         RoPE tables for `positions` (see `RotaryEmbedding.tables`), computed once per step by the caller."""
         steps = x.shape[1]
@@ -98,6 +108,7 @@ class StreamingMultiheadAttention(StreamingModule[SelfAttentionState]):
         if state is not None:
             k, v, k_pos = state.cache.append(k, v, int(positions[0]))
         allowed = attention_mask(positions, k_pos, self.context)  # every query sees at least itself
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=allowed,
-                                             dropout_p=self.dropout if self.training else 0.0)  # (B, H, T, Dh)
+        out = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=allowed, dropout_p=self.dropout if self.training else 0.0
+        )  # (B, H, T, Dh)
         return self.out_projs[0](out.transpose(1, 2).flatten(2))  # (B, T, E)

@@ -68,8 +68,16 @@ class _WeightNormMixin:
 class NormConv1d(nn.Module):
     """The learnable conv (no padding): `conv` holds weight_g, weight_v and bias."""
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1,
-                 dilation: int = 1, bias: bool = True, weight_norm: bool = True) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int,
+        stride: int = 1,
+        dilation: int = 1,
+        bias: bool = True,
+        weight_norm: bool = True,
+    ) -> None:
         super().__init__()
         self.conv = _Conv1dParams(in_channels, out_channels, kernel_size, stride, dilation, bias, weight_norm)
 
@@ -78,8 +86,16 @@ class NormConv1d(nn.Module):
 
 
 class _Conv1dParams(nn.Module, _WeightNormMixin):
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int, dilation: int,
-                 bias: bool, weight_norm: bool) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int,
+        stride: int,
+        dilation: int,
+        bias: bool,
+        weight_norm: bool,
+    ) -> None:
         super().__init__()
         reference = nn.Conv1d(in_channels, out_channels, kernel_size, stride, dilation=dilation, bias=bias)
         self.stride, self.dilation, self.kernel_size = stride, dilation, kernel_size
@@ -103,8 +119,9 @@ class _Conv1dParams(nn.Module, _WeightNormMixin):
 
 
 class _ConvTranspose1dParams(nn.Module, _WeightNormMixin):
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int, bias: bool,
-                 weight_norm: bool) -> None:
+    def __init__(
+        self, in_channels: int, out_channels: int, kernel_size: int, stride: int, bias: bool, weight_norm: bool
+    ) -> None:
         super().__init__()
         reference = nn.ConvTranspose1d(in_channels, out_channels, kernel_size, stride, bias=bias)
         self.stride, self.kernel_size = stride, kernel_size
@@ -135,8 +152,16 @@ class ConvState(StreamingState):
 class StreamingConv1d(StreamingModule[ConvState]):
     """Causal conv1d, (B, C_in, T) -> (B, C_out, ceil(T / stride)). Offline T must be a multiple of stride."""
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1,
-                 dilation: int = 1, bias: bool = True, weight_norm: bool = True) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int,
+        stride: int = 1,
+        dilation: int = 1,
+        bias: bool = True,
+        weight_norm: bool = True,
+    ) -> None:
         super().__init__()
         self.conv = NormConv1d(in_channels, out_channels, kernel_size, stride, dilation, bias, weight_norm)
         self.in_channels, self.stride = in_channels, stride
@@ -144,7 +169,9 @@ class StreamingConv1d(StreamingModule[ConvState]):
 
     def _init_streaming_state(self, batch_size: int) -> ConvState:
         device, dtype = self._param_device_dtype()
-        return ConvState(batch_size, torch.zeros(batch_size, self.in_channels, self.padding, device=device, dtype=dtype))
+        return ConvState(
+            batch_size, torch.zeros(batch_size, self.in_channels, self.padding, device=device, dtype=dtype)
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.shape[-1] % self.stride:
@@ -155,7 +182,7 @@ class StreamingConv1d(StreamingModule[ConvState]):
         if self.padding == 0:
             return self.conv(x)
         padded = torch.cat([state.tail, x], dim=-1)  # (B, C_in, padding + T)
-        state.tail.copy_(padded[..., -self.padding:])
+        state.tail.copy_(padded[..., -self.padding :])
         return self.conv(padded)
 
 
@@ -170,8 +197,15 @@ class ConvTrState(StreamingState):
 class StreamingConvTranspose1d(StreamingModule[ConvTrState]):
     """Causal transposed conv, (B, C_in, T) -> (B, C_out, T * stride)."""
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int = 1,
-                 bias: bool = True, weight_norm: bool = True) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        kernel_size: int,
+        stride: int = 1,
+        bias: bool = True,
+        weight_norm: bool = True,
+    ) -> None:
         super().__init__()
         if kernel_size < stride:
             raise ValueError(f"transposed conv kernel {kernel_size} must be >= stride {stride}")
@@ -181,7 +215,9 @@ class StreamingConvTranspose1d(StreamingModule[ConvTrState]):
 
     def _init_streaming_state(self, batch_size: int) -> ConvTrState:
         device, dtype = self._param_device_dtype()
-        return ConvTrState(batch_size, torch.zeros(batch_size, self.out_channels, self.overlap, device=device, dtype=dtype))
+        return ConvTrState(
+            batch_size, torch.zeros(batch_size, self.out_channels, self.overlap, device=device, dtype=dtype)
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = self.convtr(x)  # (B, C_out, T * stride + overlap)
@@ -189,19 +225,20 @@ class StreamingConvTranspose1d(StreamingModule[ConvTrState]):
         if self.overlap == 0:
             return y
         if state is None:
-            return y[..., :-self.overlap]
-        y[..., :self.overlap] += state.partial
-        tail = y[..., -self.overlap:]
+            return y[..., : -self.overlap]
+        y[..., : self.overlap] += state.partial
+        tail = y[..., -self.overlap :]
         bias = self.convtr.bias
         state.partial.copy_(tail if bias is None else tail - bias[:, None])
-        return y[..., :-self.overlap]
+        return y[..., : -self.overlap]
 
 
 class _NormConvTranspose1d(nn.Module):
     """`convtr` holds weight_g, weight_v and bias (checkpoint name `convtr.convtr.*`)."""
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, stride: int, bias: bool,
-                 weight_norm: bool) -> None:
+    def __init__(
+        self, in_channels: int, out_channels: int, kernel_size: int, stride: int, bias: bool, weight_norm: bool
+    ) -> None:
         super().__init__()
         self.convtr = _ConvTranspose1dParams(in_channels, out_channels, kernel_size, stride, bias, weight_norm)
 

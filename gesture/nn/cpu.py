@@ -10,9 +10,25 @@ from pathlib import Path
 import torch
 
 # Flags that decide which weight kernels run (gesture.nn.weights) and how fast.
-RELEVANT_FLAGS = ("avx2", "fma", "f16c", "avx512f", "avx512bw", "avx512vl", "avx512dq", "avx512_bf16",
-                  "avx512_vnni", "avx512_fp16", "avx_vnni", "avx_ne_convert", "amx_bf16", "amx_int8", "asimd",
-                  "bf16", "sve")
+RELEVANT_FLAGS = (
+    "avx2",
+    "fma",
+    "f16c",
+    "avx512f",
+    "avx512bw",
+    "avx512vl",
+    "avx512dq",
+    "avx512_bf16",
+    "avx512_vnni",
+    "avx512_fp16",
+    "avx_vnni",
+    "avx_ne_convert",
+    "amx_bf16",
+    "amx_int8",
+    "asimd",
+    "bf16",
+    "sve",
+)
 
 
 @functools.cache
@@ -44,8 +60,13 @@ def cpu_flags() -> tuple[str, ...]:
 
 def cpu_summary() -> dict:
     """Model, relevant flags, torch's dispatch capability and core count, for benchmark reports."""
-    return {"model": cpu_model(), "machine": platform.machine(), "flags": list(cpu_flags()),
-            "torch_capability": torch.backends.cpu.get_cpu_capability(), "logical_cores": _logical_cores()}
+    return {
+        "model": cpu_model(),
+        "machine": platform.machine(),
+        "flags": list(cpu_flags()),
+        "torch_capability": torch.backends.cpu.get_cpu_capability(),
+        "logical_cores": _logical_cores(),
+    }
 
 
 def _logical_cores() -> int:

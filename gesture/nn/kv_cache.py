@@ -21,8 +21,15 @@ class RingKVCache:
       without a mask (softmax attention does not depend on the order of its keys). Its views are made once.
     """
 
-    def __init__(self, batch_size: int, num_heads: int, head_dim: int, capacity: int,
-                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+    def __init__(
+        self,
+        batch_size: int,
+        num_heads: int,
+        head_dim: int,
+        capacity: int,
+        device: torch.device | str = "cpu",
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
         if capacity < 1:
             raise ValueError(f"RingKVCache capacity must be >= 1, got {capacity}")
         self.capacity = capacity
@@ -48,8 +55,9 @@ class RingKVCache:
         self.next_position = position + 1
         return self._filled[min(position, self.capacity - 1)]
 
-    def append(self, k: torch.Tensor, v: torch.Tensor, start_position: int | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def append(
+        self, k: torch.Tensor, v: torch.Tensor, start_position: int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Write k, v (B, H, T, D); return (keys, values, positions) of the whole ring."""
         steps = k.shape[2]
         if steps > self.capacity:
@@ -57,12 +65,12 @@ class RingKVCache:
         start = self.next_position if start_position is None else start_position
         slot = start % self.capacity
         first = min(steps, self.capacity - slot)  # entries before the ring wraps
-        self.keys[:, :, slot:slot + first] = k[:, :, :first]
-        self.values[:, :, slot:slot + first] = v[:, :, :first]
+        self.keys[:, :, slot : slot + first] = k[:, :, :first]
+        self.values[:, :, slot : slot + first] = v[:, :, :first]
         if first == 1:
             self.positions[slot] = start
         else:
-            self.positions[slot:slot + first] = torch.arange(start, start + first, device=self.positions.device)
+            self.positions[slot : slot + first] = torch.arange(start, start + first, device=self.positions.device)
         if first < steps:
             rest = steps - first
             self.keys[:, :, :rest] = k[:, :, first:]

@@ -19,7 +19,7 @@ def rope_frequencies(head_dim: int, period: float = DEFAULT_ROPE_PERIOD, device=
     if head_dim % 2:
         raise ValueError(f"RoPE needs an even head dim, got {head_dim}")
     exponents = torch.arange(0, head_dim, 2, dtype=torch.float32, device=device) / head_dim
-    return period ** -exponents
+    return period**-exponents
 
 
 def rope_tables(positions: torch.Tensor, freqs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,6 +63,7 @@ class RotaryEmbedding(nn.Module):
     def rotate(self, x: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
         return apply_rope(x, positions, self.freqs)
 
-    def forward(self, q: torch.Tensor, k: torch.Tensor, q_positions: torch.Tensor,
-                k_positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, q: torch.Tensor, k: torch.Tensor, q_positions: torch.Tensor, k_positions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         return self.rotate(q, q_positions), self.rotate(k, k_positions)

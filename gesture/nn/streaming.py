@@ -13,8 +13,9 @@ Nothing in a state grows with time: buffers are allocated once, in `_init_stream
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Generic, Iterator, TypeVar
+from typing import Generic, TypeVar
 
 import torch
 from torch import nn
@@ -55,7 +56,7 @@ class StreamingModule(nn.Module, Generic[S]):
     def is_streaming(self) -> bool:
         return self._streaming_state is not None
 
-    def _streaming_modules(self) -> Iterator["StreamingModule"]:
+    def _streaming_modules(self) -> Iterator[StreamingModule]:
         return (m for m in self.modules() if isinstance(m, StreamingModule))
 
     def start_streaming(self, batch_size: int) -> None:

@@ -30,9 +30,18 @@ class LayerScale(nn.Module):
 
 
 class StreamingTransformerLayer(StreamingModule):
-    def __init__(self, d_model: int, num_heads: int, dim_feedforward: int, context: int,
-                 rope: RotaryEmbedding | None, layer_scale_init: float | None = 0.01, dropout: float = 0.0,
-                 norm_eps: float = 1e-5, max_chunk_steps: int = 1) -> None:
+    def __init__(
+        self,
+        d_model: int,
+        num_heads: int,
+        dim_feedforward: int,
+        context: int,
+        rope: RotaryEmbedding | None,
+        layer_scale_init: float | None = 0.01,
+        dropout: float = 0.0,
+        norm_eps: float = 1e-5,
+        max_chunk_steps: int = 1,
+    ) -> None:
         super().__init__()
         self.self_attn = StreamingMultiheadAttention(d_model, num_heads, context, rope, dropout, max_chunk_steps)
         self.norm1 = nn.LayerNorm(d_model, eps=norm_eps)
@@ -47,8 +56,9 @@ class StreamingTransformerLayer(StreamingModule):
     def _drop(self, x: torch.Tensor) -> torch.Tensor:
         return self.dropout(x) if self.training and self.dropout.p > 0 else x
 
-    def forward(self, x: torch.Tensor, positions: torch.Tensor,
-                rope_tables: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, positions: torch.Tensor, rope_tables: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> torch.Tensor:
         """x (B, T, E) at absolute `positions` (T,) -> (B, T, E)."""
         x = x + self.layer_scale_1(self._drop(self.self_attn(self.norm1(x), positions, rope_tables)))
         hidden = F.gelu(self.linear1(self.norm2(x)))  # (B, T, F)
@@ -69,16 +79,37 @@ class StreamingTransformer(StreamingModule[TransformerState]):
     Offline, `offset` is the absolute step of x[:, 0]; streaming, each layer's ring cache keeps time.
     """
 
-    def __init__(self, d_model: int, num_heads: int, num_layers: int, dim_feedforward: int, context: int,
-                 rope_period: float = DEFAULT_ROPE_PERIOD, layer_scale_init: float | None = 0.01,
-                 dropout: float = 0.0, norm_eps: float = 1e-5, max_chunk_steps: int = 1) -> None:
+    def __init__(
+        self,
+        d_model: int,
+        num_heads: int,
+        num_layers: int,
+        dim_feedforward: int,
+        context: int,
+        rope_period: float = DEFAULT_ROPE_PERIOD,
+        layer_scale_init: float | None = 0.01,
+        dropout: float = 0.0,
+        norm_eps: float = 1e-5,
+        max_chunk_steps: int = 1,
+    ) -> None:
         super().__init__()
         self.rope = RotaryEmbedding(d_model // num_heads, rope_period)
-        self.layers = nn.ModuleList([
-            StreamingTransformerLayer(d_model, num_heads, dim_feedforward, context, self.rope, layer_scale_init,
-                                      dropout, norm_eps, max_chunk_steps)
-            for _ in range(num_layers)
-        ])
+        self.layers = nn.ModuleList(
+            [
+                StreamingTransformerLayer(
+                    d_model,
+                    num_heads,
+                    dim_feedforward,
+                    context,
+                    self.rope,
+                    layer_scale_init,
+                    dropout,
+                    norm_eps,
+                    max_chunk_steps,
+                )
+                for _ in range(num_layers)
+            ]
+        )
 
     def _init_streaming_state(self, batch_size: int) -> TransformerState:
         return TransformerState(batch_size)

@@ -25,7 +25,7 @@ import contextlib
 import functools
 import logging
 import os
-from typing import Iterator, Optional
+from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -42,7 +42,7 @@ FAST_KERNEL_NEEDS = {  # form -> (kernel, what the CPU needs for it)
     "int8": ("int8pack", "a torch build whose aten._weight_int8pack_mm runs on this CPU"),
 }
 _PROBE_TOLERANCE = 0.05  # relative to the product's scale; bf16 and int8 rounding stay far below it
-_forced_portable: Optional[bool] = None
+_forced_portable: bool | None = None
 
 
 class UnsupportedFormError(ValueError):
@@ -150,7 +150,7 @@ def _probe_matrix() -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @functools.cache
-def fast_kernel_error(form: str) -> Optional[str]:
+def fast_kernel_error(form: str) -> str | None:
     """None if `form`'s fast kernel runs here and agrees with float32 (or the form has none), else why not.
     Runs the kernel once on a small matrix; the answer is cached for the process."""
     check_form(form)
@@ -203,14 +203,16 @@ def check_form(form: str, option: str = "dtype") -> str:
     return form
 
 
-def slow_form_message(form: str, option: str) -> Optional[str]:
+def slow_form_message(form: str, option: str) -> str | None:
     """One line for a form whose fast kernel does not run on this CPU (None if it runs or the form has none)."""
     if form not in FAST_KERNEL_NEEDS or portable_forced() or fast_kernel_runs(form):
         return None
     kernel, needs = FAST_KERNEL_NEEDS[form]
     present = ", ".join(cpu_flags()) or "none of the relevant flags"
-    return (f"{option}={form}: the fast {kernel} kernel needs {needs}; this CPU ({cpu_model()}; {present}) cannot "
-            f"run it ({fast_kernel_error(form)})")
+    return (
+        f"{option}={form}: the fast {kernel} kernel needs {needs}; this CPU ({cpu_model()}; {present}) cannot "
+        f"run it ({fast_kernel_error(form)})"
+    )
 
 
 def require_fast_form(form: str, option: str, fallback: bool, fallback_option: str = "") -> str:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from core.body import REGIONS
+from ecas.core.body import REGIONS
 from gesture.body.regions import REGION_DIMS
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecConfig, RegionSizes
@@ -33,8 +33,10 @@ def codec_region(source: SourceCheckpoint) -> str:
     for region, dim in REGION_DIMS.items():
         if dim == nfeats:
             return region
-    raise ReleaseError(f"{source.path}: key {FIRST_CONV!r} has {nfeats} input features; a MIBURI codec has "
-                       f"{', '.join(f'{d} ({r})' for r, d in REGION_DIMS.items())}")
+    raise ReleaseError(
+        f"{source.path}: key {FIRST_CONV!r} has {nfeats} input features; a MIBURI codec has "
+        f"{', '.join(f'{d} ({r})' for r, d in REGION_DIMS.items())}"
+    )
 
 
 def assign_regions(sources: list[SourceCheckpoint]) -> dict[str, SourceCheckpoint]:
@@ -46,8 +48,10 @@ def assign_regions(sources: list[SourceCheckpoint]) -> dict[str, SourceCheckpoin
         by_region[region] = source
     missing = [r for r in REGIONS if r not in by_region]
     if missing:
-        raise ReleaseError(f"no {missing[0]} codec among {[str(s.path) for s in sources]} "
-                           f"(a {missing[0]} codec has {REGION_DIMS[missing[0]]} input features)")
+        raise ReleaseError(
+            f"no {missing[0]} codec among {[str(s.path) for s in sources]} "
+            f"(a {missing[0]} codec has {REGION_DIMS[missing[0]]} input features)"
+        )
     return by_region
 
 
@@ -69,11 +73,18 @@ class CodecShapes:
     codebook_dim: int
 
     def global_fields(self) -> dict:
-        return dict(latent_dim=self.latent_dim, n_filters=self.n_filters, residual_layers=self.residual_layers,
-                    compress=self.compress, kernel_size=self.kernel_size,
-                    residual_kernel_size=self.residual_kernel_size, downsample_ratio=self.downsample_ratio,
-                    dim_feedforward=self.dim_feedforward, codebook_size=self.codebook_size,
-                    codebook_dim=self.codebook_dim)
+        return dict(
+            latent_dim=self.latent_dim,
+            n_filters=self.n_filters,
+            residual_layers=self.residual_layers,
+            compress=self.compress,
+            kernel_size=self.kernel_size,
+            residual_kernel_size=self.residual_kernel_size,
+            downsample_ratio=self.downsample_ratio,
+            dim_feedforward=self.dim_feedforward,
+            codebook_size=self.codebook_size,
+            codebook_dim=self.codebook_dim,
+        )
 
 
 def read_codec_shapes(source: SourceCheckpoint) -> CodecShapes:
@@ -82,20 +93,32 @@ def read_codec_shapes(source: SourceCheckpoint) -> CodecShapes:
     hidden, _, residual_kernel = source.shape("seanet_encoder.model.1.block.1.conv.conv.weight_v")  # (F/c, F, k)
     down_out, down_in, down_kernel = source.shape(f"seanet_encoder.model.{residual + 2}.conv.conv.weight_v")
     if down_in != n_filters or down_kernel % 2:
-        raise ReleaseError(f"{source.path}: key 'seanet_encoder.model.{residual + 2}.conv.conv.weight_v' has shape "
-                           f"{(down_out, down_in, down_kernel)}, expected ({2 * n_filters}, {n_filters}, 2*ratio)")
+        raise ReleaseError(
+            f"{source.path}: key 'seanet_encoder.model.{residual + 2}.conv.conv.weight_v' has shape "
+            f"{(down_out, down_in, down_kernel)}, expected ({2 * n_filters}, {n_filters}, 2*ratio)"
+        )
     latent = source.shape(f"seanet_encoder.model.{residual + 4}.conv.conv.weight_v")[0]
     ffn = source.shape("transformer_encoder.transformer.layers.0.linear1.weight")[0]
     card, code_dim = source.shape("quantizer.vq.layers.0._codebook.embedding_sum")
     if n_filters % hidden:
-        raise ReleaseError(f"{source.path}: key 'seanet_encoder.model.1.block.1.conv.conv.weight_v' has "
-                           f"{hidden} channels, which does not divide {n_filters}")
-    return CodecShapes(n_filters=n_filters, kernel_size=kernel, residual_layers=residual, compress=n_filters // hidden,
-                       residual_kernel_size=residual_kernel, downsample_ratio=down_kernel // 2, latent_dim=latent,
-                       dim_feedforward=ffn,
-                       num_layers=source.count("transformer_encoder.transformer.layers.{}.norm1.weight"),
-                       n_q=source.count("quantizer.vq.layers.{}._codebook.embedding_sum"), codebook_size=card,
-                       codebook_dim=code_dim)
+        raise ReleaseError(
+            f"{source.path}: key 'seanet_encoder.model.1.block.1.conv.conv.weight_v' has "
+            f"{hidden} channels, which does not divide {n_filters}"
+        )
+    return CodecShapes(
+        n_filters=n_filters,
+        kernel_size=kernel,
+        residual_layers=residual,
+        compress=n_filters // hidden,
+        residual_kernel_size=residual_kernel,
+        downsample_ratio=down_kernel // 2,
+        latent_dim=latent,
+        dim_feedforward=ffn,
+        num_layers=source.count("transformer_encoder.transformer.layers.{}.norm1.weight"),
+        n_q=source.count("quantizer.vq.layers.{}._codebook.embedding_sum"),
+        codebook_size=card,
+        codebook_dim=code_dim,
+    )
 
 
 def _count_blocks(source: SourceCheckpoint) -> int:
@@ -113,11 +136,15 @@ def region_sizes(region: str, shapes: CodecShapes, config: ExperimentConfig, sou
     heads = config.require_int("transformer_heads") // divisor
     layers = config.get("transformer_layers")
     if isinstance(layers, int) and layers // divisor != shapes.num_layers:
-        raise ReleaseError(f"{source.path}: has {shapes.num_layers} transformer layers, but {config.path} field "
-                           f"'transformer_layers' = {layers} gives {layers // divisor} for the {region} codec")
+        raise ReleaseError(
+            f"{source.path}: has {shapes.num_layers} transformer layers, but {config.path} field "
+            f"'transformer_layers' = {layers} gives {layers // divisor} for the {region} codec"
+        )
     if heads < 1 or shapes.latent_dim % heads or (shapes.latent_dim // heads) % 2:
-        raise ReleaseError(f"{config.path}: field 'transformer_heads' = {config.get('transformer_heads')} gives "
-                           f"{heads} heads for the {region} codec, which does not split its width {shapes.latent_dim}")
+        raise ReleaseError(
+            f"{config.path}: field 'transformer_heads' = {config.get('transformer_heads')} gives "
+            f"{heads} heads for the {region} codec, which does not split its width {shapes.latent_dim}"
+        )
     return RegionSizes(n_q=shapes.n_q, num_layers=shapes.num_layers, num_heads=heads)
 
 
@@ -154,8 +181,10 @@ def check_weight_norm(codec: GestureCodec, source: SourceCheckpoint) -> float:
             actual = module.folded_weight()
         error = float((actual - expected).abs().max() / expected.abs().max().clamp_min(1e-12))
         if error > FOLD_TOLERANCE:
-            raise ReleaseError(f"{source.path}: key {name + '.weight_v'!r}: the runtime weight differs from "
-                               f"g*v/||v|| by {error:.2e} (relative)")
+            raise ReleaseError(
+                f"{source.path}: key {name + '.weight_v'!r}: the runtime weight differs from "
+                f"g*v/||v|| by {error:.2e} (relative)"
+            )
         worst = max(worst, error)
     return worst
 
@@ -172,6 +201,10 @@ def codec_codebooks(sources: dict[str, SourceCheckpoint]) -> list[tuple[str, tor
     for region in REGIONS:
         source = sources[region]
         for i in range(source.count("quantizer.vq.layers.{}._codebook.embedding_sum")):
-            out.append((f"{Path(source.path).name} quantizer.vq.layers.{i}",
-                        codebook_vectors(source, f"quantizer.vq.layers.{i}")))
+            out.append(
+                (
+                    f"{Path(source.path).name} quantizer.vq.layers.{i}",
+                    codebook_vectors(source, f"quantizer.vq.layers.{i}"),
+                )
+            )
     return out

@@ -27,25 +27,38 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 from safetensors import safe_open
 
-from core.body import REGIONS
-from core.config import ConfigError
-from core.threads import limit_threads
-from core.timing import STEP_SAMPLES
+from ecas.core.body import REGIONS
+from ecas.core.config import ConfigError
+from ecas.core.threads import limit_threads
+from ecas.core.timing import STEP_SAMPLES
 from gesture.body.regions import REGION_DIMS
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
 from gesture.config import GestureConfig, IdleGateConfig
 from gesture.lm.checkpoint import save_lm
-from gesture.release.codecs import (FIRST_CONV, assign_regions, check_weight_norm, codec_codebooks, codec_configs,
-                                    convert_codec)
+from gesture.release.codecs import (
+    FIRST_CONV,
+    assign_regions,
+    check_weight_norm,
+    codec_codebooks,
+    codec_configs,
+    convert_codec,
+)
 from gesture.release.glm import check_codebooks, convert_glm, read_glm_layout
-from gesture.release.source import (IDLE_FILES, ReleaseError, checkpoint_keys, read_checkpoint, read_experiment_config,
-                                    read_idle_slices, read_speaker_map, strip_prefix)
+from gesture.release.source import (
+    IDLE_FILES,
+    ReleaseError,
+    checkpoint_keys,
+    read_checkpoint,
+    read_experiment_config,
+    read_idle_slices,
+    read_speaker_map,
+    strip_prefix,
+)
 from gesture.release.speakers import resolve_character, write_speaker_map
 
 LM_DIR, CODECS_DIR, IDLE_DIR, REPORT_FILE = "lm", "codecs", "idle", "release.json"
@@ -67,7 +80,7 @@ def find_glm(experiment_dir: Path) -> Path:
     return found[0]
 
 
-def _region_of_file(path: Path) -> Optional[str]:
+def _region_of_file(path: Path) -> str | None:
     with safe_open(str(path), framework="pt") as f:
         keys = {strip_prefix(k): k for k in f.keys()}
         if FIRST_CONV not in keys:
@@ -76,7 +89,7 @@ def _region_of_file(path: Path) -> Optional[str]:
     return next((region for region, dim in REGION_DIMS.items() if dim == nfeats), None)
 
 
-def find_codecs(directories: list[Path], given: dict[str, Optional[Path]]) -> list[Path]:
+def find_codecs(directories: list[Path], given: dict[str, Path | None]) -> list[Path]:
     """Codec files: the given ones, then one per missing region found under `directories` (by input width)."""
     chosen = {region: Path(path) for region, path in given.items() if path is not None}
     found: dict[str, list[Path]] = {}
@@ -86,19 +99,30 @@ def find_codecs(directories: list[Path], given: dict[str, Optional[Path]]) -> li
             found.setdefault(region, []).append(path)
     for region, paths in found.items():
         if len(paths) > 1:
-            raise ReleaseError(f"{len(paths)} {region} codecs found ({', '.join(map(str, paths))}); "
-                               f"pass --{region} FILE")
+            raise ReleaseError(
+                f"{len(paths)} {region} codecs found ({', '.join(map(str, paths))}); pass --{region} FILE"
+            )
         chosen[region] = paths[0]
     missing = [r for r in REGIONS if r not in chosen]
     if missing:
-        raise ReleaseError(f"no {missing[0]} codec checkpoint found under {', '.join(map(str, directories))}; "
-                           f"pass --codec-dir DIR or --{missing[0]} FILE")
+        raise ReleaseError(
+            f"no {missing[0]} codec checkpoint found under {', '.join(map(str, directories))}; "
+            f"pass --codec-dir DIR or --{missing[0]} FILE"
+        )
     return [chosen[r] for r in REGIONS]
 
 
-def convert_release(experiment_dir: Path, out: Path, *, codec_dir: Optional[Path] = None, glm: Optional[Path] = None,
-                    codec_files: Optional[dict[str, Optional[Path]]] = None, character: Optional[str] = None,
-                    check: bool = True, force: bool = False) -> dict:
+def convert_release(
+    experiment_dir: Path,
+    out: Path,
+    *,
+    codec_dir: Path | None = None,
+    glm: Path | None = None,
+    codec_files: dict[str, Path | None] | None = None,
+    character: str | None = None,
+    check: bool = True,
+    force: bool = False,
+) -> dict:
     """Convert one experiment (see the module docstring); returns the report also written to OUT/release.json."""
     experiment_dir, out = Path(experiment_dir), Path(out)
     config = read_experiment_config(experiment_dir)
@@ -120,14 +144,29 @@ def convert_release(experiment_dir: Path, out: Path, *, codec_dir: Optional[Path
     idle = read_idle_slices(experiment_dir, {"upper": levels["upper"], "face": levels["face"]}, layout.sizes.card)
     default_speaker = resolve_character(character, speakers, layout.sizes.n_speakers) if character else None
     report = {
-        "sources": {"experiment_dir": str(experiment_dir), "glm": str(glm_path),
-                    "codecs": {r: str(codec_sources[r].path) for r in REGIONS}},
-        "glm": {"stored_dtypes": sorted(str(d) for d in glm_source.dtypes), "lm": dataclasses.asdict(layout.sizes),
-                "condition": layout.spec.to_dict(), "ignored_keys": layout.ignored, "unused_keys": layout.unused},
-        "codecs": {r: {"n_q": levels[r], "layers": codec_cfgs[r].region(r).num_layers,
-                       "heads": codec_cfgs[r].region(r).num_heads, "latent_dim": codec_cfgs[r].latent_dim}
-                   for r in REGIONS},
-        "speakers": speakers, "default_speaker": default_speaker,
+        "sources": {
+            "experiment_dir": str(experiment_dir),
+            "glm": str(glm_path),
+            "codecs": {r: str(codec_sources[r].path) for r in REGIONS},
+        },
+        "glm": {
+            "stored_dtypes": sorted(str(d) for d in glm_source.dtypes),
+            "lm": dataclasses.asdict(layout.sizes),
+            "condition": layout.spec.to_dict(),
+            "ignored_keys": layout.ignored,
+            "unused_keys": layout.unused,
+        },
+        "codecs": {
+            r: {
+                "n_q": levels[r],
+                "layers": codec_cfgs[r].region(r).num_layers,
+                "heads": codec_cfgs[r].region(r).num_heads,
+                "latent_dim": codec_cfgs[r].latent_dim,
+            }
+            for r in REGIONS
+        },
+        "speakers": speakers,
+        "default_speaker": default_speaker,
         "idle_steps": {region: int(tokens.shape[2]) for region, tokens in idle.items()},
     }
     staging = _staging_dir(out, force)
@@ -150,8 +189,10 @@ def convert_release(experiment_dir: Path, out: Path, *, codec_dir: Optional[Path
 def _check_codec_card(card: int, code_dim: int, cfgs: dict, glm_path: Path) -> None:
     for region, cfg in cfgs.items():
         if (cfg.codebook_size, cfg.codebook_dim) != (card, code_dim):
-            raise ReleaseError(f"{glm_path}: key 'temporal_gemb.0.weight' has shape {(card, code_dim)}, but the "
-                               f"{region} codec's codebooks are ({cfg.codebook_size}, {cfg.codebook_dim})")
+            raise ReleaseError(
+                f"{glm_path}: key 'temporal_gemb.0.weight' has shape {(card, code_dim)}, but the "
+                f"{region} codec's codebooks are ({cfg.codebook_size}, {cfg.codebook_dim})"
+            )
 
 
 def _staging_dir(out: Path, force: bool) -> Path:
@@ -174,10 +215,15 @@ def _publish(staging: Path, out: Path) -> None:
 
 
 def release_gesture_config(out: Path, speaker: int, **overrides) -> GestureConfig:
-    """The `gesture:` options that run a converted release (what configs/miburi-release.yaml says)."""
+    """The `gesture:` options that run a converted release (what ecas/configs/miburi-release.yaml says)."""
     out = Path(out)
-    return GestureConfig(lm_checkpoint=out / LM_DIR, codec_checkpoints=out / CODECS_DIR, speaker=speaker,
-                         idle=IdleGateConfig(enabled=True, slices_dir=out / IDLE_DIR), **overrides)
+    return GestureConfig(
+        lm_checkpoint=out / LM_DIR,
+        codec_checkpoints=out / CODECS_DIR,
+        speaker=speaker,
+        idle=IdleGateConfig(enabled=True, slices_dir=out / IDLE_DIR),
+        **overrides,
+    )
 
 
 def run_streaming_check(out: Path, speaker: int) -> float:
@@ -191,8 +237,9 @@ def run_streaming_check(out: Path, speaker: int) -> float:
     try:
         for step in range(CHECK_STEPS):
             start = time.perf_counter()
-            result = generator.step(step % generator.spec.text_vocab, np.zeros(generator.spec.n_audio_codebooks),
-                                    silence)
+            result = generator.step(
+                step % generator.spec.text_vocab, np.zeros(generator.spec.n_audio_codebooks), silence
+            )
             times.append((time.perf_counter() - start) * 1e3)
             if not (np.isfinite(result.poses).all() and np.isfinite(result.trans).all()):
                 raise ReleaseError(f"{out}: the converted release produced non-finite motion at step {step}")
@@ -203,10 +250,17 @@ def run_streaming_check(out: Path, speaker: int) -> float:
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--experiment-dir", type=Path, required=True,
-                   help="the release experiment: config.yaml, speaker_id_to_index.json, tokens_idle_slices/, GLM")
-    p.add_argument("--codec-dir", type=Path,
-                   help="where the three codec checkpoints are, searched recursively (default: --experiment-dir)")
+    p.add_argument(
+        "--experiment-dir",
+        type=Path,
+        required=True,
+        help="the release experiment: config.yaml, speaker_id_to_index.json, tokens_idle_slices/, GLM",
+    )
+    p.add_argument(
+        "--codec-dir",
+        type=Path,
+        help="where the three codec checkpoints are, searched recursively (default: --experiment-dir)",
+    )
     p.add_argument("--glm", type=Path, help="the GLM safetensors (default: the one under --experiment-dir)")
     for region in REGIONS:
         p.add_argument(f"--{region}", type=Path, help=f"the {region} codec safetensors (default: found by shape)")
@@ -221,9 +275,16 @@ def main(argv=None) -> int:
     limit_threads()
     args = parse_args(argv)
     try:
-        report = convert_release(args.experiment_dir, args.out, codec_dir=args.codec_dir, glm=args.glm,
-                                 codec_files={r: getattr(args, r) for r in REGIONS}, character=args.character,
-                                 check=not args.no_check, force=args.force)
+        report = convert_release(
+            args.experiment_dir,
+            args.out,
+            codec_dir=args.codec_dir,
+            glm=args.glm,
+            codec_files={r: getattr(args, r) for r in REGIONS},
+            character=args.character,
+            check=not args.no_check,
+            force=args.force,
+        )
     except (ReleaseError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -233,9 +294,11 @@ def main(argv=None) -> int:
 
 def _print_summary(out: Path, report: dict) -> None:
     lm = report["glm"]["lm"]
-    print(f"converted to {out}/: LM d={lm['d_model']} temporal {lm['temporal_layers']}x{lm['temporal_heads']} heads, "
-          f"depth {lm['depth_layers']}x{lm['depth_heads']}, {lm['n_upper']}+{lm['n_lower']}+{lm['n_face']} levels "
-          f"of {lm['card']} codes, {lm['n_speakers']} speaker rows; condition {report['glm']['condition']}")
+    print(
+        f"converted to {out}/: LM d={lm['d_model']} temporal {lm['temporal_layers']}x{lm['temporal_heads']} heads, "
+        f"depth {lm['depth_layers']}x{lm['depth_heads']}, {lm['n_upper']}+{lm['n_lower']}+{lm['n_face']} levels "
+        f"of {lm['card']} codes, {lm['n_speakers']} speaker rows; condition {report['glm']['condition']}"
+    )
     for key, reason in sorted(set(report["glm"]["ignored_keys"].items())):
         print(f"  ignored {key}: {reason}")
     for pattern, reason in report["glm"]["unused_keys"].items():
@@ -246,6 +309,7 @@ def _print_summary(out: Path, report: dict) -> None:
     speakers = ", ".join(f"{n} ({i})" for n, i in sorted(report["speakers"].items(), key=lambda kv: kv[1]))
     print(f"speakers: {speakers}")
     if speaker is not None:
-        print("run it with: python launch.py --mic --config configs/miburi-release.yaml "
-              f"--set gesture.speaker={speaker}")
-
+        print(
+            "run it with: python launch.py --mic --config ecas/configs/miburi-release.yaml "
+            f"--set gesture.speaker={speaker}"
+        )

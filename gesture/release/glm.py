@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from core.spec import ConditionSpec
+from ecas.core.spec import ConditionSpec
 from gesture.lm.config import LMConfig
 from gesture.lm.model import GestureLM
 from gesture.release.codecs import codebook_vectors
@@ -42,8 +42,9 @@ class GlmLayout:
 def _heads(config: ExperimentConfig, name: str, d: int) -> int:
     heads = config.require_int(name)
     if heads < 1 or d % heads or (d // heads) % 2:
-        raise ReleaseError(f"{config.path}: field {name!r} = {heads} does not split the GLM width {d} into "
-                           f"heads of even size")
+        raise ReleaseError(
+            f"{config.path}: field {name!r} = {heads} does not split the GLM width {d} into heads of even size"
+        )
     return heads
 
 
@@ -59,8 +60,10 @@ def read_glm_layout(source: SourceCheckpoint, config: ExperimentConfig, region_l
     card, code_dim = source.shape("temporal_gemb.0.weight")
     levels = source.count("temporal_gemb.{}.weight")
     if levels != sum(region_levels.values()):
-        raise ReleaseError(f"{source.path}: has {levels} gesture levels (temporal_gemb.*), but the codecs have "
-                           f"{region_levels} codebooks ({sum(region_levels.values())} in all)")
+        raise ReleaseError(
+            f"{source.path}: has {levels} gesture levels (temporal_gemb.*), but the codecs have "
+            f"{region_levels} codebooks ({sum(region_levels.values())} in all)"
+        )
     temporal_layers = source.count("temporal_transformer.layers.{}.norm1.weight")
     depth_layers = source.count("depth_transformer.layers.{}.norm1.weight")
     _check_layers(config, "gestureformer_layers", temporal_layers, source)
@@ -71,23 +74,35 @@ def read_glm_layout(source: SourceCheckpoint, config: ExperimentConfig, region_l
     face_va = FACE_VA_KEY in source.tensors
     has_va = "vad_predictor.7.weight" in source.tensors
     sizes = LMConfig(
-        d_model=d, temporal_layers=temporal_layers, temporal_heads=_heads(config, "gestureformer_heads", d),
-        depth_layers=depth_layers, depth_heads=_heads(config, "gestureformer_depformer_heads", d),
+        d_model=d,
+        temporal_layers=temporal_layers,
+        temporal_heads=_heads(config, "gestureformer_heads", d),
+        depth_layers=depth_layers,
+        depth_heads=_heads(config, "gestureformer_depformer_heads", d),
         ffn_hidden=source.shape("temporal_transformer.layers.0.gating.linear_out.weight")[1],
-        n_upper=region_levels["upper"], n_lower=region_levels["lower"], n_face=region_levels["face"],
-        card=card, code_dim=code_dim, n_speakers=n_speakers, va_head=has_va and not face_va,
-        va_use_face_logits=False)
+        n_upper=region_levels["upper"],
+        n_lower=region_levels["lower"],
+        n_face=region_levels["face"],
+        card=card,
+        code_dim=code_dim,
+        n_speakers=n_speakers,
+        va_head=has_va and not face_va,
+        va_use_face_logits=False,
+    )
     text_vocab, embed_dim = source.shape("text_procemb.weight")
-    spec = ConditionSpec(name=CONDITION_NAME, text_vocab=text_vocab,
-                         audio_card=source.shape("audio_procemb.0.weight")[0], embed_dim=embed_dim,
-                         n_audio_codebooks=source.count("audio_procemb.{}.weight"))
+    spec = ConditionSpec(
+        name=CONDITION_NAME,
+        text_vocab=text_vocab,
+        audio_card=source.shape("audio_procemb.0.weight")[0],
+        embed_dim=embed_dim,
+        n_audio_codebooks=source.count("audio_procemb.{}.weight"),
+    )
     ignored = {}
     if face_va:
         reason = "face-logit voice-activity head (training-only auxiliary), dropped"
         ignored = {k: reason for k in source.tensors if k.startswith(("vad_face_proj.", "vad_predictor."))}
     unused = {
-        f"depth_transformer.layers.*.cross_attns.*.{{key,val}}_projs.1-{sizes.n_depth - 1}":
-            "kept; every depth position uses the trained index-0 projections (MIBURI-FACTS section 9)",
+        f"depth_transformer.layers.*.cross_attns.*.{{key,val}}_projs.1-{sizes.n_depth - 1}": "kept; every depth position uses the trained index-0 projections (MIBURI-FACTS section 9)",
         "gesture_codec_layers.*": "kept; frozen codec codebooks, checked against the codecs",
     }
     return GlmLayout(sizes, spec, ignored, unused)
@@ -112,8 +127,10 @@ def check_codebooks(source: SourceCheckpoint, codec_books: list[tuple[str, torch
         scale = expected.abs().amax(dim=1, keepdim=True).clamp_min(1e-12)  # (card, 1): per-code magnitude
         error = float(((actual - expected).abs() / scale).max())
         if error > CODEBOOK_RTOL:
-            raise ReleaseError(f"{source.path}: key 'gesture_codec_layers.{level}._codebook.embedding_sum' does not "
-                               f"match the codec codebook {name} (relative difference {error:.3g}): these codecs "
-                               f"are not the ones this GLM was trained with")
+            raise ReleaseError(
+                f"{source.path}: key 'gesture_codec_layers.{level}._codebook.embedding_sum' does not "
+                f"match the codec codebook {name} (relative difference {error:.3g}): these codecs "
+                f"are not the ones this GLM was trained with"
+            )
         worst = max(worst, error)
     return worst

@@ -3,15 +3,16 @@ ignored, and every model key is present with the same shape. Problems become one
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import torch
 
 from gesture.release.source import ReleaseError, SourceCheckpoint
 
 
-def match_keys(source: SourceCheckpoint, expected: Mapping[str, tuple[int, ...]],
-               ignored: Mapping[str, str]) -> dict[str, torch.Tensor]:
+def match_keys(
+    source: SourceCheckpoint, expected: Mapping[str, tuple[int, ...]], ignored: Mapping[str, str]
+) -> dict[str, torch.Tensor]:
     """The tensors to load (source keys minus `ignored`), after checking names and shapes against `expected`.
 
     `ignored` maps a source key to the reason it is dropped. Raises one ReleaseError naming the file, the first
@@ -23,8 +24,9 @@ def match_keys(source: SourceCheckpoint, expected: Mapping[str, tuple[int, ...]]
         problems.append(f"unexpected key {key!r} with shape {tuple(source.tensors[key].shape)}")
     for key in sorted(set(source.tensors) & set(expected)):
         if tuple(source.tensors[key].shape) != tuple(expected[key]):
-            problems.append(f"key {key!r} has shape {tuple(source.tensors[key].shape)}, "
-                            f"expected {tuple(expected[key])}")
+            problems.append(
+                f"key {key!r} has shape {tuple(source.tensors[key].shape)}, expected {tuple(expected[key])}"
+            )
     if problems:
         more = f" (and {len(problems) - 1} more problems)" if len(problems) > 1 else ""
         raise ReleaseError(f"{source.path}: {problems[0]}{more}")

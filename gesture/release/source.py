@@ -6,15 +6,16 @@ Every problem raises `ReleaseError` with one message naming the file and, where 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import torch
 from safetensors import safe_open
 
-from core.config import ConfigError, load_yaml
+from ecas.core.config import ConfigError, load_yaml
 
 KEY_PREFIXES = ("module.", "m.")  # stripped on load, as the reference loader does
 CONFIG_FILE = "config.yaml"
@@ -30,7 +31,7 @@ class ReleaseError(ValueError):
 def strip_prefix(key: str) -> str:
     for prefix in KEY_PREFIXES:
         if key.startswith(prefix):
-            return key[len(prefix):]
+            return key[len(prefix) :]
     return key
 
 
@@ -127,8 +128,10 @@ def read_speaker_map(directory: Path, n_speakers: int) -> dict[str, int]:
         raise ReleaseError(f"{path}: expected a non-empty mapping of speaker name to index")
     for name, index in tree.items():
         if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < n_speakers:
-            raise ReleaseError(f"{path}: speaker {name!r} has index {index!r}, outside the {n_speakers} rows "
-                               f"of the GLM's speaker tables")
+            raise ReleaseError(
+                f"{path}: speaker {name!r} has index {index!r}, outside the {n_speakers} rows "
+                f"of the GLM's speaker tables"
+            )
     return {str(name): int(index) for name, index in tree.items()}
 
 
@@ -147,7 +150,9 @@ def read_idle_slices(directory: Path, levels: Mapping[str, int], card: int) -> d
         if tokens.ndim != 3 or tokens.shape[:2] != expected or tokens.shape[2] < 1:
             raise ReleaseError(f"{path}: key '0' has shape {tokens.shape}, expected (1, {levels[region]}, T>=1)")
         if not np.issubdtype(tokens.dtype, np.integer) or tokens.min() < 0 or tokens.max() >= card:
-            raise ReleaseError(f"{path}: key '0' must hold codes in [0, {card - 1}], got dtype {tokens.dtype} "
-                               f"and range [{tokens.min()}, {tokens.max()}]")
+            raise ReleaseError(
+                f"{path}: key '0' must hold codes in [0, {card - 1}], got dtype {tokens.dtype} "
+                f"and range [{tokens.min()}, {tokens.max()}]"
+            )
         out[region] = tokens.astype(np.int64)
     return out

@@ -9,18 +9,19 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
-from core.config import ConfigError
+from ecas.core.config import ConfigError
 from gesture.lm.checkpoint import read_meta
 
 SPEAKERS_FILE = "speakers.json"
 
 
 def write_speaker_map(lm_dir: Path, speakers: Mapping[str, int]) -> None:
-    (Path(lm_dir) / SPEAKERS_FILE).write_text(json.dumps(dict(sorted(speakers.items(), key=lambda kv: kv[1])),
-                                                         indent=1))
+    (Path(lm_dir) / SPEAKERS_FILE).write_text(
+        json.dumps(dict(sorted(speakers.items(), key=lambda kv: kv[1])), indent=1)
+    )
 
 
 def read_speaker_map(lm_dir: Path) -> dict[str, int]:
@@ -35,8 +36,9 @@ def resolve_character(value: str | int, speakers: Mapping[str, int], n_speakers:
     if text.lstrip("-").isdigit():
         index = int(text)
         if not 0 <= index < n_speakers:
-            raise ConfigError(f"--character: index {index} is outside the model's {n_speakers} speakers "
-                              f"(0..{n_speakers - 1})")
+            raise ConfigError(
+                f"--character: index {index} is outside the model's {n_speakers} speakers (0..{n_speakers - 1})"
+            )
         return index
     by_name = {name.lower(): index for name, index in speakers.items()}
     if text.lower() not in by_name:

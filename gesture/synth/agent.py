@@ -23,12 +23,12 @@ import torch
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 from scipy.special import ndtr
 
-from core.body import NUM_JOINTS
+from ecas.core.body import NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
 from gesture.body.skeleton import Skeleton, forward_kinematics
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig
-from gesture.synth.conversation import AGENT, USER, MIN_PAUSE_S, Conversation, activity_frames
+from gesture.synth.conversation import AGENT, MIN_PAUSE_S, USER, Conversation, activity_frames
 from gesture.synth.face import JAW_OPEN_RAD, blink_track, expressions_from_activations
 from gesture.synth.gestures import ArmTracks, plan_arms
 from gesture.synth.hands import blend_hands
@@ -71,15 +71,21 @@ ARM_MAX_FLEX_STEP_RAD = 0.25  # per frame (real: the fastest joint turns 0.40 ra
 # axis on the elbows and wrists, gated up to 1.5x) on top of a flexed elbow or a bent wrist otherwise reaches ~3 rad.
 # Soft limits (identity below the knee, tanh above it, never past the cap) at the real clip's tail: its collars reach
 # 0.60/0.68 (p99 0.52/0.57), elbows 1.91/2.45 (p99 1.86/2.37), wrists 1.22/1.30 (p99 1.11/1.17).
-JOINT_SOFT_LIMITS_RAD = {**{j: (0.55, 0.68) for j in (13, 14)}, **{j: (2.2, 2.55) for j in (18, 19)},
-                         **{j: (1.1, 1.4) for j in (20, 21)}}  # joint -> (knee, cap)
+JOINT_SOFT_LIMITS_RAD = {
+    **{j: (0.55, 0.68) for j in (13, 14)},
+    **{j: (2.2, 2.55) for j in (18, 19)},
+    **{j: (1.1, 1.4) for j in (20, 21)},
+}  # joint -> (knee, cap)
 # The collars take part of each upper arm's swing (as a real shoulder girdle does): the collar turns by this share of
 # the upper arm's rotation (chest frame) away from its median direction, smoothed over COLLAR_SMOOTH_S. The arm IK
 # then re-solves, so the hands' targets stay and the shoulder joints turn less. Without it, on the real clip's speech,
 # the shoulders spread 1.6x as wide as the speaker's (pose diversity) and the collars hardly moved.
 COLLAR_SHARE = 0.5
 COLLAR_SMOOTH_S = 0.2
-POLE_OUT, POLE_DOWN = 0.15, -0.8  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
+POLE_OUT, POLE_DOWN = (
+    0.15,
+    -0.8,
+)  # where the elbows point (chest frame, per unit backwards): out, down (real arms stay close)
 SIDE_JOINTS = {  # (collar, shoulder, elbow, wrist, hip, knee, ankle, foot) per side
     "left": (13, 16, 18, 20, 1, 4, 7, 10),
     "right": (14, 17, 19, 21, 2, 5, 8, 11),
@@ -112,7 +118,7 @@ def speaking_frames(conv: Conversation, n_frames: int, fps: float) -> np.ndarray
     """(T,) 1 inside the agent's turns (not its backchannels)."""
     out = np.zeros(n_frames)
     for turn in conv.turns_of(AGENT, "turn"):
-        out[int(turn.start_s * fps): int(turn.end_s * fps) + 1] = 1.0
+        out[int(turn.start_s * fps) : int(turn.end_s * fps) + 1] = 1.0
     return out
 
 
@@ -120,11 +126,19 @@ def user_pauses(conv: Conversation) -> list[float]:
     """Times where the user pauses: after a word followed by a gap >= MIN_PAUSE_S, and at turn ends."""
     words = conv.words_of(USER)
     return [a.end_s for a, b in zip(words, words[1:]) if b.start_s - a.end_s >= MIN_PAUSE_S] + (
-        [words[-1].end_s] if words else [])
+        [words[-1].end_s] if words else []
+    )
 
 
-def plan_head(rng: np.random.Generator, conv: Conversation, n: int, fps: float, energy: np.ndarray,
-              env: np.ndarray, speaking: np.ndarray) -> tuple[np.ndarray, list[float]]:
+def plan_head(
+    rng: np.random.Generator,
+    conv: Conversation,
+    n: int,
+    fps: float,
+    energy: np.ndarray,
+    env: np.ndarray,
+    speaking: np.ndarray,
+) -> tuple[np.ndarray, list[float]]:
     """(T, 3) head offset (pitch down +x, yaw +y, roll +z) and the times of listening nods."""
     times = np.arange(n) / fps
     pose = KeyTrack(np.zeros(3), max_rate=0.4)
@@ -164,8 +178,9 @@ BROW_AMOUNT = (0.5, 1.0)
 SMILE_AMOUNT = (0.5, 1.0)
 
 
-def plan_face(rng: np.random.Generator, conv: Conversation, n: int, fps: float, env: np.ndarray,
-              nods: list[float]) -> np.ndarray:
+def plan_face(
+    rng: np.random.Generator, conv: Conversation, n: int, fps: float, env: np.ndarray, nods: list[float]
+) -> np.ndarray:
     """(T, 100) expression coefficients.
 
     Smiles and brow raises are frequent, large and held for a while: a face codec trained on this keeps them only
@@ -192,10 +207,16 @@ def plan_face(rng: np.random.Generator, conv: Conversation, n: int, fps: float, 
         if rng.random() < 0.25:
             add_bump(brow, fps, t + 0.1, 0.15, 0.3, 0.4, rng.uniform(0.3, 0.7))
     extra_blinks = [t.start_s for t in conv.turns_of(AGENT, "turn") if rng.random() < 0.5]
-    return expressions_from_activations({
-        "smile": np.clip(smile, 0.0, 1.0), "brow_raise": np.clip(brow, 0.0, 1.0), "lips_apart": 0.35 * env,
-        "mouth_wide": wide * env, "pucker": pucker * env, "blink": blink_track(rng, n, fps, extra_blinks),
-    })
+    return expressions_from_activations(
+        {
+            "smile": np.clip(smile, 0.0, 1.0),
+            "brow_raise": np.clip(brow, 0.0, 1.0),
+            "lips_apart": 0.35 * env,
+            "mouth_wide": wide * env,
+            "pucker": pucker * env,
+            "blink": blink_track(rng, n, fps, extra_blinks),
+        }
+    )
 
 
 def gate_rms(log_std: np.ndarray | float, cap: float) -> np.ndarray:
@@ -235,8 +256,9 @@ def micro_noise(rng: np.random.Generator, n: int, fps: float, noise: MicroNoise)
     return (slow + noise.fast_ratio * fast) * noise.std_rad[None]
 
 
-def micro_motion(rng: np.random.Generator, n: int, fps: float, params: dict[int, MicroNoise],
-                 scale: np.ndarray) -> dict[int, np.ndarray]:
+def micro_motion(
+    rng: np.random.Generator, n: int, fps: float, params: dict[int, MicroNoise], scale: np.ndarray
+) -> dict[int, np.ndarray]:
     """Per joint, (T, 3) local rotation offsets: its ``micro_noise`` times ``scale`` (T,) and its body part's gate,
     or its own (``OWN_GATES``)."""
     part_gates = micro_gate(smooth_noise(rng, n, fps, MICRO_GATE_HZ, len(MICRO_PARTS)))  # (T, parts)
@@ -271,11 +293,21 @@ class BodySolver:
         self.arm_chains, self.leg_chains = {}, {}
         for side, sign in (("left", 1.0), ("right", -1.0)):
             _, sh, el, wr, hip, kn, an, _ = SIDE_JOINTS[side]
-            self.arm_chains[side] = TwoBoneChain(rest[el] - rest[sh], rest[wr] - rest[el], np.array([0.0, -sign, 0.0]),
-                                                 min_flex_rad=ARM_MIN_FLEX_RAD, max_flex_step_rad=ARM_MAX_FLEX_STEP_RAD,
-                                                 soft_reach=ARM_SOFT_REACH)
-            self.leg_chains[side] = TwoBoneChain(rest[kn] - rest[hip], rest[an] - rest[kn], np.array([1.0, 0.0, 0.0]),
-                                                 min_flex_rad=0.05, max_flex_rad=1.2)
+            self.arm_chains[side] = TwoBoneChain(
+                rest[el] - rest[sh],
+                rest[wr] - rest[el],
+                np.array([0.0, -sign, 0.0]),
+                min_flex_rad=ARM_MIN_FLEX_RAD,
+                max_flex_step_rad=ARM_MAX_FLEX_STEP_RAD,
+                soft_reach=ARM_SOFT_REACH,
+            )
+            self.leg_chains[side] = TwoBoneChain(
+                rest[kn] - rest[hip],
+                rest[an] - rest[kn],
+                np.array([1.0, 0.0, 0.0]),
+                min_flex_rad=0.05,
+                max_flex_rad=1.2,
+            )
 
     def _fk(self, local: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         joints, transforms = forward_kinematics(self.skeleton, torch.from_numpy(local), torch.from_numpy(trans))
@@ -292,7 +324,9 @@ class BodySolver:
         raise_amount = np.clip((arms.wrist[..., 1] - rest_wrist_y) / 0.4, 0.0, 1.0)  # (T, 2)
         for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
             lift = posture.collar_lift + 0.1 * raise_amount[:, s]
-            local[:, SIDE_JOINTS[side][0]] = _aa(np.stack([0 * lift, 0 * lift, sign * lift], -1)) @ _aa(self.base[SIDE_JOINTS[side][0]])
+            local[:, SIDE_JOINTS[side][0]] = _aa(np.stack([0 * lift, 0 * lift, sign * lift], -1)) @ _aa(
+                self.base[SIDE_JOINTS[side][0]]
+            )
         joints, rots = self._fk(local, posture.trans)
         for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
             self._solve_arm(local, joints, rots, arms, s, side, sign)
@@ -324,7 +358,9 @@ class BodySolver:
         chest_rot, chest_pos = rots[:, 9], joints[:, 9]
         target = chest_pos + np.einsum("tij,tj->ti", chest_rot, arms.wrist[:, s])
         ones = np.ones(len(target))
-        pole_local = np.stack([sign * (POLE_OUT + arms.elbow_out[:, s]), POLE_DOWN * ones, -ones], -1)  # elbow out and back
+        pole_local = np.stack(
+            [sign * (POLE_OUT + arms.elbow_out[:, s]), POLE_DOWN * ones, -ones], -1
+        )  # elbow out and back
         pole = np.einsum("tij,tj->ti", chest_rot, pole_local)
         chain = self.arm_chains[side]
         local[:, sh], theta = chain.solve(joints[:, sh], rots[:, collar], target, pole)
@@ -347,9 +383,13 @@ class BodySolver:
         local[:, ankle] = np.swapaxes(shin, -1, -2) @ foot
 
 
-def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Conversation,
-                            skeleton: Skeleton | None = None,
-                            micro: dict[int, MicroNoise] | None = None) -> AgentMotion:
+def synthesize_agent_motion(
+    cfg: SynthConfig,
+    rng: np.random.Generator,
+    conv: Conversation,
+    skeleton: Skeleton | None = None,
+    micro: dict[int, MicroNoise] | None = None,
+) -> AgentMotion:
     """The agent's motion; ``micro`` overrides the calibrated micro-motion (``{}``: none, as the fit needs)."""
     skeleton = skeleton or Skeleton.default()
     fps = cfg.motion_fps
@@ -372,10 +412,13 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
     solver = BodySolver(skeleton, fps)
     # the turned pelvis moves the hips: lowered where a leg would otherwise lock straight (the ankle then flips)
     root_rot = _aa(posture.root_offset_aa) @ _aa(solver.base[0])
-    posture.trans[:, 1] = np.minimum(posture.trans[:, 1],
-                                     highest_pelvis(skeleton, posture.trans[:, [0, 2]], posture.ankles, root_rot))
+    posture.trans[:, 1] = np.minimum(
+        posture.trans[:, 1], highest_pelvis(skeleton, posture.trans[:, [0, 2]], posture.ankles, root_rot)
+    )
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
-    gesture_local = local.copy()  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
+    gesture_local = (
+        local.copy()
+    )  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
     for j, offset in offsets.items():
         sign = ELBOW_SIDES.get(j)
         scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]
@@ -385,9 +428,13 @@ def synthesize_agent_motion(cfg: SynthConfig, rng: np.random.Generator, conv: Co
     local = PostureReflexes(fps).step(local)  # on the layered joints: the runtime layer runs them after its noise
     poses, gesture_poses = (finish_poses(m, solver.base[22], env, arms) for m in (local, gesture_local))
     return AgentMotion(
-        poses=poses, trans=posture.trans.astype(np.float32), expressions=expressions,
-        vad=activity_frames(conv.words_of(AGENT), n, fps), user_vad=activity_frames(conv.words_of(USER), n, fps),
-        planted=posture.planted.astype(np.uint8), gesture_poses=gesture_poses,
+        poses=poses,
+        trans=posture.trans.astype(np.float32),
+        expressions=expressions,
+        vad=activity_frames(conv.words_of(AGENT), n, fps),
+        user_vad=activity_frames(conv.words_of(USER), n, fps),
+        planted=posture.planted.astype(np.uint8),
+        gesture_poses=gesture_poses,
     )
 
 

@@ -33,18 +33,18 @@ import dataclasses
 import hashlib
 import json
 import sys
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Iterable, Optional
 
 import numpy as np
 import soundfile as sf
 import torch
 from tqdm import tqdm
 
-from core.config import ConfigError
-from core.threads import limit_threads
+from ecas.core.config import ConfigError
+from ecas.core.threads import limit_threads
 from gesture.synth.agent import AgentMotion, synthesize_agent_motion
 from gesture.synth.config import SynthConfig, load_synth_config
 from gesture.synth.conversation import AGENT, USER, Conversation, Turn, build_conversation
@@ -82,29 +82,49 @@ def generate_session(cfg: SynthConfig, seed: int, k: int, minutes: float) -> tup
 
 
 def _words_json(turn: Turn, conv: Conversation) -> list[dict]:
-    return [{"word": w.word, "start": round(w.start_s, 3), "end": round(w.end_s, 3), "stressed": w.stressed}
-            for w in conv.words_of(turn.speaker) if turn.start_s <= w.start_s <= turn.end_s]
+    return [
+        {"word": w.word, "start": round(w.start_s, 3), "end": round(w.end_s, 3), "stressed": w.stressed}
+        for w in conv.words_of(turn.speaker)
+        if turn.start_s <= w.start_s <= turn.end_s
+    ]
 
 
 def transcript(conv: Conversation) -> dict:
     segments = []
     for turn in conv.turns:
         words = _words_json(turn, conv)
-        segments.append({"start": round(turn.start_s, 3), "end": round(turn.end_s, 3), "speaker": turn.speaker,
-                         "kind": turn.kind, "interrupted": turn.interrupted,
-                         "text": " ".join(w["word"] for w in words), "words": words})
+        segments.append(
+            {
+                "start": round(turn.start_s, 3),
+                "end": round(turn.end_s, 3),
+                "speaker": turn.speaker,
+                "kind": turn.kind,
+                "interrupted": turn.interrupted,
+                "text": " ".join(w["word"] for w in words),
+                "words": words,
+            }
+        )
     agent = [dict(s, id=i) for i, s in enumerate(s for s in segments if s["speaker"] == AGENT)]
-    return {"language": "en", "text": " ".join(s["text"] for s in agent), "segments": agent,
-            "conversation": [dict(s, id=i) for i, s in enumerate(segments)]}
+    return {
+        "language": "en",
+        "text": " ".join(s["text"] for s in agent),
+        "segments": agent,
+        "conversation": [dict(s, id=i) for i, s in enumerate(segments)],
+    }
 
 
 def write_session(root: Path, tid: str, conv: Conversation, motion: AgentMotion, fps: int) -> None:
     n = len(motion.poses)
     np.savez(
         root / MOTION_DIR / f"{tid}.npz",
-        poses=motion.poses.reshape(n, -1), trans=motion.trans, expressions=motion.expressions,
-        betas=np.zeros(NUM_BETAS, np.float32), mocap_frame_rate=np.int64(fps),
-        vad=motion.vad, user_vad=motion.user_vad, gesture_poses=motion.gesture_poses.reshape(n, -1),
+        poses=motion.poses.reshape(n, -1),
+        trans=motion.trans,
+        expressions=motion.expressions,
+        betas=np.zeros(NUM_BETAS, np.float32),
+        mocap_frame_rate=np.int64(fps),
+        vad=motion.vad,
+        user_vad=motion.user_vad,
+        gesture_poses=motion.gesture_poses.reshape(n, -1),
     )
     sr = conv.sample_rate_hz
     for suffix, pcm in (("", conv.channels[AGENT]), ("_user", conv.channels[USER]), ("_mix", conv.mix)):
@@ -131,8 +151,9 @@ def generator_fingerprint() -> str:
     return digest.hexdigest()
 
 
-def generate_sessions(cfg: SynthConfig, root: Path | str, seed: int, numbers: Iterable[int], minutes: float,
-                      jobs: int = 1, progress=iter) -> list[str]:
+def generate_sessions(
+    cfg: SynthConfig, root: Path | str, seed: int, numbers: Iterable[int], minutes: float, jobs: int = 1, progress=iter
+) -> list[str]:
     """Write sessions `numbers` (each its own process, see below) under ``root``; returns their take ids."""
     root = Path(root)
     for sub in (MOTION_DIR, AUDIO_DIR, TRANSCRIPT_DIR):
@@ -145,8 +166,9 @@ def generate_sessions(cfg: SynthConfig, root: Path | str, seed: int, numbers: It
         return list(progress(pool.map(_make_session, work)))
 
 
-def generate_dataset(cfg: SynthConfig, root: Path | str, n_sessions: int, minutes: float, seed: int,
-                     jobs: int = 1, progress=iter) -> list[str]:
+def generate_dataset(
+    cfg: SynthConfig, root: Path | str, n_sessions: int, minutes: float, seed: int, jobs: int = 1, progress=iter
+) -> list[str]:
     """Write ``n_sessions`` sessions of ``minutes`` each under ``root``; returns their take ids."""
     if n_sessions < 1:
         raise ConfigError(f"--sessions: must be >= 1, got {n_sessions}")
@@ -158,29 +180,40 @@ def generate_dataset(cfg: SynthConfig, root: Path | str, n_sessions: int, minute
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(["id", "type"])
         writer.writerows([take_id(cfg, k), split_of(cfg, k, n_sessions)] for k in range(1, n_sessions + 1))
-    meta = {"seed": seed, "sessions": n_sessions, "minutes": minutes, "config": dataclasses.asdict(cfg),
-            "generator_sha256": generator_fingerprint()}
+    meta = {
+        "seed": seed,
+        "sessions": n_sessions,
+        "minutes": minutes,
+        "config": dataclasses.asdict(cfg),
+        "generator_sha256": generator_fingerprint(),
+    }
     (root / "generation.json").write_text(json.dumps(meta, indent=1))
     return ids
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     limit_threads()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output directory (BEAT2 layout)")
     parser.add_argument("--sessions", type=int, default=40)
     parser.add_argument("--minutes", type=float, default=SESSION_MINUTES, help="length of each session")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--config", help="YAML with synthetic options (configs/data/synthetic.yaml)")
+    parser.add_argument("--config", help="YAML with synthetic options (ecas/configs/data/synthetic.yaml)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (the output does not depend on it)")
     args = parser.parse_args(argv)
     try:
         cfg = load_synth_config(args.config) if args.config else SynthConfig()
-        ids = generate_dataset(cfg, args.out, args.sessions, args.minutes, args.seed, args.jobs,
-                               progress=lambda xs: tqdm(xs, total=args.sessions, desc="sessions", unit="session"))
+        ids = generate_dataset(
+            cfg,
+            args.out,
+            args.sessions,
+            args.minutes,
+            args.seed,
+            args.jobs,
+            progress=lambda xs: tqdm(xs, total=args.sessions, desc="sessions", unit="session"),
+        )
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"{args.out}: {len(ids)} sessions of {args.minutes:g} min")
     return 0
-

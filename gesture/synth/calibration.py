@@ -27,9 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from core.body import HAND_JOINTS
-from gesture.body.rotation import (axis_angle_to_matrix, axis_angle_to_quaternion, matrix_to_axis_angle,
-                                   quaternion_to_axis_angle, rotation_about_y, yaw_of_matrix)
+from ecas.core.body import HAND_JOINTS
+from gesture.body.rotation import (
+    axis_angle_to_matrix,
+    axis_angle_to_quaternion,
+    matrix_to_axis_angle,
+    quaternion_to_axis_angle,
+    rotation_about_y,
+    yaw_of_matrix,
+)
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 
 CALIBRATION_JSON = Path(__file__).with_name("calibration.json")
@@ -99,9 +105,14 @@ def to_json(cal: Calibration) -> dict:
         "relaxed_hand_aa": np.round(cal.relaxed_hand_aa, 5).tolist(),
         "wrist_chest_m": np.round(cal.wrist_chest_m, 5).tolist(),
         "wrist_speed_mps": round(cal.wrist_speed_mps, 5),
-        "micro_motion": {str(j): {"std_rad": np.round(m.std_rad, 5).tolist(), "cutoff_hz": round(float(m.cutoff_hz), 4),
-                                  "fast_ratio": round(float(m.fast_ratio), 4)}
-                         for j, m in sorted(cal.micro_motion.items())},
+        "micro_motion": {
+            str(j): {
+                "std_rad": np.round(m.std_rad, 5).tolist(),
+                "cutoff_hz": round(float(m.cutoff_hz), 4),
+                "fast_ratio": round(float(m.fast_ratio), 4),
+            }
+            for j, m in sorted(cal.micro_motion.items())
+        },
     }
 
 
@@ -111,9 +122,10 @@ def from_json(doc: dict) -> Calibration:
         relaxed_hand_aa=np.asarray(doc["relaxed_hand_aa"], np.float64),
         wrist_chest_m=np.asarray(doc["wrist_chest_m"], np.float64),
         wrist_speed_mps=float(doc["wrist_speed_mps"]),
-        micro_motion={int(j): MicroNoise(np.asarray(v["std_rad"], np.float64), float(v["cutoff_hz"]),
-                                         float(v["fast_ratio"]))
-                      for j, v in doc.get("micro_motion", {}).items()},
+        micro_motion={
+            int(j): MicroNoise(np.asarray(v["std_rad"], np.float64), float(v["cutoff_hz"]), float(v["fast_ratio"]))
+            for j, v in doc.get("micro_motion", {}).items()
+        },
     )
 
 

@@ -1,14 +1,14 @@
-"""Options of the synthetic dyadic conversation generator (YAML: configs/data/synthetic.yaml)."""
+"""Options of the synthetic dyadic conversation generator (YAML: ecas/configs/data/synthetic.yaml)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any
 
-
-from core.config import ConfigError, build_dataclass, load_yaml
-from core.timing import MOTION_FPS
+from ecas.core.config import ConfigError, build_dataclass, load_yaml
+from ecas.core.timing import MOTION_FPS
 
 GESTURE_FAMILIES = ("beat", "presentation", "deictic", "size", "adaptor")
 # The joints whose micro-motion the agent adds at run time (gesture.micro_motion) rather than through its codecs: the
@@ -49,8 +49,15 @@ class SynthConfig:
         for name in ("agent_voices", "user_voices"):
             if not getattr(self, name):
                 raise ConfigError(f"synthetic.{name}: needs at least one espeak-ng voice")
-        for name in ("rate_wpm", "pitch", "sentences_per_turn", "sentence_pause_s", "turn_gap_range_s", "reaction_s",
-                     "amplitude"):
+        for name in (
+            "rate_wpm",
+            "pitch",
+            "sentences_per_turn",
+            "sentence_pause_s",
+            "turn_gap_range_s",
+            "reaction_s",
+            "amplitude",
+        ):
             low, high = getattr(self, name)
             if low > high or low < 0 and name != "turn_gap_range_s":
                 raise ConfigError(f"synthetic.{name}: expected 0 <= low <= high, got {getattr(self, name)}")
@@ -59,7 +66,11 @@ class SynthConfig:
         for name in ("backchannel_prob", "interruption_prob", "gesture_prob", "test_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"synthetic.{name}: must be in [0, 1], got {getattr(self, name)}")
-        if len(self.family_weights) != len(GESTURE_FAMILIES) or min(self.family_weights) < 0 or sum(self.family_weights) <= 0:
+        if (
+            len(self.family_weights) != len(GESTURE_FAMILIES)
+            or min(self.family_weights) < 0
+            or sum(self.family_weights) <= 0
+        ):
             raise ConfigError(
                 f"synthetic.family_weights: need {len(GESTURE_FAMILIES)} non-negative weights "
                 f"({', '.join(GESTURE_FAMILIES)}), got {self.family_weights}"
@@ -68,7 +79,7 @@ class SynthConfig:
             raise ConfigError(f"synthetic.speaker_name: must be non-empty without '_', got {self.speaker_name!r}")
 
 
-def build_synth_config(mapping: Optional[Mapping[str, Any]]) -> SynthConfig:
+def build_synth_config(mapping: Mapping[str, Any] | None) -> SynthConfig:
     return build_dataclass(SynthConfig, mapping, "synthetic")
 
 

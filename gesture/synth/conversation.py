@@ -18,8 +18,8 @@ from math import gcd
 import numpy as np
 from scipy.signal import resample_poly
 
-from core.timing import SAMPLE_RATE_HZ as TTS_SAMPLE_RATE_HZ
 from dialogue.tts import EspeakTts
+from ecas.core.timing import SAMPLE_RATE_HZ as TTS_SAMPLE_RATE_HZ
 from gesture.synth.config import SynthConfig
 from gesture.synth.sentences import SentenceGenerator
 
@@ -31,10 +31,92 @@ MIN_PAUSE_S = 0.25  # a gap between words this long is a pause (backchannel oppo
 STROKE_SEARCH_S = 0.35  # the energy peak of a word is looked for in its first 350 ms
 
 STOPWORDS = frozenset(
-    "a an the and or but so to of in on at for with from by is are was were be been am i you he she it we they me "
-    "my your our his her its their this that there these those do did does have has had not no yes oh um uh "
-    "would should could will can just about as if then than what when why how who which all some any one "
-    "well really mean know mm-hmm mm uh-huh okay".split()
+    [
+        "a",
+        "an",
+        "the",
+        "and",
+        "or",
+        "but",
+        "so",
+        "to",
+        "of",
+        "in",
+        "on",
+        "at",
+        "for",
+        "with",
+        "from",
+        "by",
+        "is",
+        "are",
+        "was",
+        "were",
+        "be",
+        "been",
+        "am",
+        "i",
+        "you",
+        "he",
+        "she",
+        "it",
+        "we",
+        "they",
+        "me",
+        "my",
+        "your",
+        "our",
+        "his",
+        "her",
+        "its",
+        "their",
+        "this",
+        "that",
+        "there",
+        "these",
+        "those",
+        "do",
+        "did",
+        "does",
+        "have",
+        "has",
+        "had",
+        "not",
+        "no",
+        "yes",
+        "oh",
+        "um",
+        "uh",
+        "would",
+        "should",
+        "could",
+        "will",
+        "can",
+        "just",
+        "about",
+        "as",
+        "if",
+        "then",
+        "than",
+        "what",
+        "when",
+        "why",
+        "how",
+        "who",
+        "which",
+        "all",
+        "some",
+        "any",
+        "one",
+        "well",
+        "really",
+        "mean",
+        "know",
+        "mm-hmm",
+        "mm",
+        "uh-huh",
+        "okay",
+    ]
 )
 
 
@@ -129,12 +211,17 @@ class _Speaker:
         starts = [w.start_sample / TTS_SAMPLE_RATE_HZ for w in utt.words] + [len(pcm) / self.sample_rate_hz]
         words = []
         for i, w in enumerate(utt.words):
-            a, b = (int(starts[i] / ENVELOPE_HOP_S), max(int(starts[i + 1] / ENVELOPE_HOP_S), int(starts[i] / ENVELOPE_HOP_S) + 1))
+            a, b = (
+                int(starts[i] / ENVELOPE_HOP_S),
+                max(int(starts[i + 1] / ENVELOPE_HOP_S), int(starts[i] / ENVELOPE_HOP_S) + 1),
+            )
             active = np.flatnonzero(voiced[a:b])
             end_s = float(a + active[-1] + 1) * ENVELOPE_HOP_S if len(active) else starts[i] + 0.05
             search = env[a : min(b, a + int(STROKE_SEARCH_S / ENVELOPE_HOP_S))]
             peak_s = float(a + int(np.argmax(search))) * ENVELOPE_HOP_S if len(search) else starts[i]
-            words.append(SpokenWord(w.word, self.name, starts[i], max(end_s, starts[i] + 0.03), peak_s, is_stressed(w.word)))
+            words.append(
+                SpokenWord(w.word, self.name, starts[i], max(end_s, starts[i] + 0.03), peak_s, is_stressed(w.word))
+            )
         return pcm, words
 
 
@@ -178,7 +265,9 @@ class ConversationBuilder:
     def _backchannel(self, speaker: str, start_s: float) -> _Piece:
         pcm, words = self.speakers[speaker].say(self.sentences.backchannel())
         words = [SpokenWord(w.word, w.speaker, w.start_s, w.end_s, w.peak_s, False) for w in words]
-        return _Piece(speaker, start_s - words[0].start_s, pcm, words, "backchannel", [(words[0].start_s, words[-1].end_s)])
+        return _Piece(
+            speaker, start_s - words[0].start_s, pcm, words, "backchannel", [(words[0].start_s, words[-1].end_s)]
+        )
 
     def _interrupt(self, piece: _Piece) -> float | None:
         """Maybe cut an agent turn where the user barges in; returns the user's onset (absolute) or None."""
@@ -195,7 +284,9 @@ class ConversationBuilder:
         pcm[-n_fade:] *= np.linspace(1.0, 0.0, n_fade, dtype=np.float32)
         kept = [w for w in piece.words if w.start_s < cut - 0.02]
         last = kept[-1]
-        kept[-1] = SpokenWord(last.word, last.speaker, last.start_s, min(last.end_s, cut), min(last.peak_s, cut), last.stressed)
+        kept[-1] = SpokenWord(
+            last.word, last.speaker, last.start_s, min(last.end_s, cut), min(last.peak_s, cut), last.stressed
+        )
         piece.pcm, piece.words, piece.interrupted = pcm, kept, True
         piece.sentence_spans_s = [(a, min(b, cut)) for a, b in piece.sentence_spans_s if a < cut]
         return piece.start_s + onset
@@ -241,8 +332,12 @@ class ConversationBuilder:
             channels[p.speaker][first : first + len(seg)] += seg
             dt = first / sr
             placed = [w for w in _shift(p.words, dt) if w.start_s < duration_s - 0.05]
-            placed = [SpokenWord(w.word, w.speaker, w.start_s, min(w.end_s, duration_s), min(w.peak_s, duration_s), w.stressed)
-                      for w in placed]
+            placed = [
+                SpokenWord(
+                    w.word, w.speaker, w.start_s, min(w.end_s, duration_s), min(w.peak_s, duration_s), w.stressed
+                )
+                for w in placed
+            ]
             if not placed:
                 continue
             words += placed

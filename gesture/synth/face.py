@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.body import NUM_EXPRESSIONS
+from ecas.core.body import NUM_EXPRESSIONS
 from gesture.synth.tracks import add_bump
 
 
@@ -40,8 +40,14 @@ LIPS_APART_PSI = _pattern({1: -1 / 1.2})
 MOUTH_WIDE_PSI = _pattern({7: 1 / 0.5})
 PUCKER_PSI = _pattern({8: 1 / 0.6})
 BLINK_PSI = BLINK_ROW / (BLINK_ROW @ BLINK_ROW)  # BLINK_ROW . psi = 1
-FACE_PATTERNS = {"smile": SMILE_PSI, "brow_raise": BROW_PSI, "lips_apart": LIPS_APART_PSI,
-                 "mouth_wide": MOUTH_WIDE_PSI, "pucker": PUCKER_PSI, "blink": BLINK_PSI}
+FACE_PATTERNS = {
+    "smile": SMILE_PSI,
+    "brow_raise": BROW_PSI,
+    "lips_apart": LIPS_APART_PSI,
+    "mouth_wide": MOUTH_WIDE_PSI,
+    "pucker": PUCKER_PSI,
+    "blink": BLINK_PSI,
+}
 JAW_OPEN_RAD = 0.10
 BLINKS_PER_MINUTE = 17.0
 BLINK_REFRACTORY_S = 0.8
@@ -58,7 +64,9 @@ def blink_track(rng: np.random.Generator, n_frames: int, fps: float, extra_times
     times += [x for x in extra_times_s if all(abs(x - y) > BLINK_REFRACTORY_S for y in times)]
     closure = np.zeros(n_frames)
     for t in times:
-        add_bump(closure, fps, t, rng.uniform(*BLINK_RISE_S), rng.uniform(*BLINK_HOLD_S), rng.uniform(*BLINK_FALL_S), 1.0)
+        add_bump(
+            closure, fps, t, rng.uniform(*BLINK_RISE_S), rng.uniform(*BLINK_HOLD_S), rng.uniform(*BLINK_FALL_S), 1.0
+        )
     return np.clip(closure, 0.0, 1.0)
 
 

@@ -66,8 +66,13 @@ class _Arm:
 
     def __init__(self, side: float, rest: np.ndarray):
         self.side, self.rest = side, mirror(rest, side)
-        initial = {"wrist": self.rest, "elbow_out": 0.0, "supination": self.REST_SUPINATION, "flex": self.REST_FLEX,
-                   "hand": shape_weights("relaxed")}
+        initial = {
+            "wrist": self.rest,
+            "elbow_out": 0.0,
+            "supination": self.REST_SUPINATION,
+            "flex": self.REST_FLEX,
+            "hand": shape_weights("relaxed"),
+        }
         self.tracks = {name: KeyTrack(initial[name], MAX_RATE[name]) for name in CHANNELS}
         self.away = False  # not at rest
 
@@ -77,8 +82,14 @@ class _Arm:
 
     def key(self, t: float, **values) -> None:
         """Key every channel at one time (unnamed channels hold); a too-fast change delays the key."""
-        t = max([t] + [track.last_time + np.linalg.norm(np.asarray(values[name]) - track.last_value) / track.max_rate
-                       for name, track in self.tracks.items() if name in values])
+        t = max(
+            [t]
+            + [
+                track.last_time + np.linalg.norm(np.asarray(values[name]) - track.last_value) / track.max_rate
+                for name, track in self.tracks.items()
+                if name in values
+            ]
+        )
         for name, track in self.tracks.items():
             track.key(t, values[name] if name in values else track.last_value)
         self.away = True
@@ -87,8 +98,14 @@ class _Arm:
         if not self.away:
             return
         self.key(start_s)
-        self.key(start_s + duration_s, wrist=self.rest, elbow_out=0.0, supination=self.REST_SUPINATION,
-                 flex=self.REST_FLEX, hand=shape_weights("relaxed"))
+        self.key(
+            start_s + duration_s,
+            wrist=self.rest,
+            elbow_out=0.0,
+            supination=self.REST_SUPINATION,
+            flex=self.REST_FLEX,
+            hand=shape_weights("relaxed"),
+        )
         self.away = False
 
 
@@ -140,8 +157,13 @@ class GesturePlanner:
     def _deictic(self, arm: _Arm, strokes: list[float], amp: float) -> None:
         targets = ((0.12, 0.02, 0.44), (0.28, 0.0, 0.32), (0.14, 0.1, 0.42), (0.04, -0.08, 0.2))
         aim = mirror(targets[int(self.rng.integers(len(targets)))], arm.side) + self.rng.normal(0, 0.02, 3)
-        arm.key(strokes[0] - 0.15, wrist=aim - mirror((0.0, 0.0, 0.06), arm.side), hand=shape_weights("point", 0.7),
-                supination=-0.3, elbow_out=0.3)
+        arm.key(
+            strokes[0] - 0.15,
+            wrist=aim - mirror((0.0, 0.0, 0.06), arm.side),
+            hand=shape_weights("point", 0.7),
+            supination=-0.3,
+            elbow_out=0.3,
+        )
         arm.key(strokes[0], wrist=aim, hand=shape_weights("point"), flex=-0.15)
         for k in range(1, len(strokes)):
             arm.key(strokes[k] - self._up_s(strokes, k), wrist=aim - (0, 0, 0.04 * amp))
@@ -150,13 +172,21 @@ class GesturePlanner:
     def _size(self, arm: _Arm, strokes: list[float], amp: float, widths: np.ndarray, heights: np.ndarray) -> None:
         for k, ts in enumerate(strokes):
             base = np.array([widths[k], heights[k], 0.3])
-            arm.key(ts - self._up_s(strokes, k), wrist=mirror(base + (0.03, 0.03, 0.0), arm.side), supination=0.0,
-                    hand=shape_weights("open", 0.85), flex=0.0, elbow_out=0.2)
+            arm.key(
+                ts - self._up_s(strokes, k),
+                wrist=mirror(base + (0.03, 0.03, 0.0), arm.side),
+                supination=0.0,
+                hand=shape_weights("open", 0.85),
+                flex=0.0,
+                elbow_out=0.2,
+            )
             arm.key(ts, wrist=mirror(base - (0.0, 0.02 * amp, 0.0), arm.side))
 
     def _adaptor(self, arm: _Arm, strokes: list[float], amp: float) -> None:
         clasp = mirror((0.075, -0.27, 0.2), arm.side)
-        arm.key(strokes[0] - 0.2, wrist=clasp, supination=0.1, hand=shape_weights("fist", 0.45), flex=0.15, elbow_out=0.0)
+        arm.key(
+            strokes[0] - 0.2, wrist=clasp, supination=0.1, hand=shape_weights("fist", 0.45), flex=0.15, elbow_out=0.0
+        )
         for k in range(1, len(strokes)):
             arm.key(strokes[k] - self._up_s(strokes, k), wrist=clasp + (0, 0.015 * amp, 0.0))
             arm.key(strokes[k], wrist=clasp)
@@ -191,7 +221,9 @@ class GesturePlanner:
         weights = np.asarray(self.cfg.family_weights) / sum(self.cfg.family_weights)
         for i, (a, b, turn) in enumerate(sentences):
             next_a = sentences[i + 1][0] if i + 1 < len(sentences) else np.inf
-            strokes = pick_strokes([p for p in peaks if a <= p < b]) or pick_strokes([p for p in all_peaks if a <= p < b])[:1]
+            strokes = (
+                pick_strokes([p for p in peaks if a <= p < b]) or pick_strokes([p for p in all_peaks if a <= p < b])[:1]
+            )
             if strokes and self.rng.random() < self.cfg.gesture_prob:
                 family = GESTURE_FAMILIES[int(self.rng.choice(len(GESTURE_FAMILIES), p=weights))]
                 for arm in self.arms:  # a hand left up by the previous gesture and not used now goes down
@@ -226,12 +258,18 @@ class GesturePlanner:
     def _evaluate(self, n_frames: int, fps: float) -> ArmTracks:
         times = np.arange(n_frames) / fps
         out = {name: np.stack([arm.tracks[name].evaluate(times) for arm in self.arms], 1) for name in CHANNELS}
-        return ArmTracks(wrist=out["wrist"], elbow_out=out["elbow_out"][..., 0], supination=out["supination"][..., 0],
-                         flex=out["flex"][..., 0], hand=out["hand"])
+        return ArmTracks(
+            wrist=out["wrist"],
+            elbow_out=out["elbow_out"][..., 0],
+            supination=out["supination"][..., 0],
+            flex=out["flex"][..., 0],
+            hand=out["hand"],
+        )
 
 
-def plan_arms(cfg: SynthConfig, rng: np.random.Generator, conv: Conversation, n_frames: int, fps: float,
-              energy: np.ndarray) -> ArmTracks:
+def plan_arms(
+    cfg: SynthConfig, rng: np.random.Generator, conv: Conversation, n_frames: int, fps: float, energy: np.ndarray
+) -> ArmTracks:
     """Arm tracks plus a little organic drift of the wrists, scaled by ``energy`` (T,)."""
     tracks = GesturePlanner(cfg, rng).plan(conv, n_frames, fps)
     drift = smooth_noise(rng, n_frames, fps, 0.4, 6).reshape(n_frames, 2, 3) * 0.008

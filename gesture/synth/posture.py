@@ -69,12 +69,17 @@ def _stance(rng: np.random.Generator, centre: np.ndarray, ankle_z: float) -> np.
     """(2 feet L/R, 2 xz) a new stance around ``centre`` (xz)."""
     half_width = rng.uniform(*STANCE_HALF_WIDTH_M)
     stagger = float(np.clip(rng.normal(0.0, STANCE_STAGGER_STD_M), -STANCE_STAGGER_MAX_M, STANCE_STAGGER_MAX_M))
-    return np.array([[centre[0] + half_width, ankle_z + centre[1] + stagger / 2],
-                     [centre[0] - half_width, ankle_z + centre[1] - stagger / 2]])
+    return np.array(
+        [
+            [centre[0] + half_width, ankle_z + centre[1] + stagger / 2],
+            [centre[0] - half_width, ankle_z + centre[1] - stagger / 2],
+        ]
+    )
 
 
-def plan_steps(rng: np.random.Generator, n_frames: int, fps: float, energy: np.ndarray,
-               ankle_z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def plan_steps(
+    rng: np.random.Generator, n_frames: int, fps: float, energy: np.ndarray, ankle_z: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The feet's bouts of steps: (T, 2 L/R, 2 xz) floor positions, (T, 2) lift (m), (T, 2) planted (1/0)."""
     times = np.arange(n_frames) / fps
     duration = n_frames / fps
@@ -90,9 +95,10 @@ def plan_steps(rng: np.random.Generator, n_frames: int, fps: float, energy: np.n
         feet[foot].hold(start)
         feet[foot].key(start + length, target)
         end = feet[foot].last_time  # later than asked when the step is long (FOOT_MAX_RATE_MPS)
-        add_bump(lift[:, foot], fps, (start + end) / 2, (end - start) / 2, 0.0, (end - start) / 2,
-                 rng.uniform(*FOOT_LIFT_M))
-        planted[int(start * fps): int(end * fps) + 2, foot] = 0.0
+        add_bump(
+            lift[:, foot], fps, (start + end) / 2, (end - start) / 2, 0.0, (end - start) / 2, rng.uniform(*FOOT_LIFT_M)
+        )
+        planted[int(start * fps) : int(end * fps) + 2, foot] = 0.0
         return end
 
     t = rng.uniform(*BOUT_HOLD_S)
@@ -115,8 +121,9 @@ def plan_steps(rng: np.random.Generator, n_frames: int, fps: float, energy: np.n
     return xz, lift, planted
 
 
-def highest_pelvis(skeleton: Skeleton, trans_xz: np.ndarray, ankles: np.ndarray,
-                   root_rot: np.ndarray | None = None) -> np.ndarray:
+def highest_pelvis(
+    skeleton: Skeleton, trans_xz: np.ndarray, ankles: np.ndarray, root_rot: np.ndarray | None = None
+) -> np.ndarray:
     """(T,) the highest pelvis translation at which each hip is within LEG_REACH_SHARE of its leg's length from its
     ankle; ``root_rot`` (T, 3, 3): the pelvis's rotation, which moves the hips (None: upright)."""
     rest = skeleton.rest_joints.astype(np.float64)
@@ -130,8 +137,9 @@ def highest_pelvis(skeleton: Skeleton, trans_xz: np.ndarray, ankles: np.ndarray,
     return highest
 
 
-def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np.ndarray,
-                 skeleton: Skeleton | None = None) -> Posture:
+def plan_posture(
+    rng: np.random.Generator, n_frames: int, fps: float, energy: np.ndarray, skeleton: Skeleton | None = None
+) -> Posture:
     skeleton = skeleton or Skeleton.default()
     times = np.arange(n_frames) / fps
     duration = n_frames / fps
@@ -150,11 +158,17 @@ def plan_posture(rng: np.random.Generator, n_frames: int, fps: float, energy: np
     sway = smooth_noise(rng, n_frames, fps, 0.15, 5) * (0.6 + 0.4 * energy[:, None])  # (T, 5)
     mid = xz.mean(1)  # (T, 2) the feet's centre
     to_left = (xz[:, 0] - xz[:, 1]) / 2  # (T, 2) from the centre to the left foot
-    pelvis_sway = lowpass_noise(rng, n_frames, fps, PELVIS_SWAY_HZ, 2, PELVIS_SWAY_ORDER) * PELVIS_SWAY_M * (0.6 + 0.4 * energy[:, None])
+    pelvis_sway = (
+        lowpass_noise(rng, n_frames, fps, PELVIS_SWAY_HZ, 2, PELVIS_SWAY_ORDER)
+        * PELVIS_SWAY_M
+        * (0.6 + 0.4 * energy[:, None])
+    )
     trans_xz = mid + WEIGHT_SHIFT_SHARE * weight[:, None] * to_left + sway[:, [0, 2]] * (0.008, 0.01) + pelvis_sway
     trans_xz[:, 1] -= ankle_z  # the feet stand ankle_z from the pelvis (z)
     nominal = TRANS_Y_M - KNEE_DIP_M * np.abs(weight) + 0.002 * sway[:, 1]
-    trans = np.stack([trans_xz[:, 0], np.minimum(nominal, highest_pelvis(skeleton, trans_xz, ankles)), trans_xz[:, 1]], -1)
+    trans = np.stack(
+        [trans_xz[:, 0], np.minimum(nominal, highest_pelvis(skeleton, trans_xz, ankles)), trans_xz[:, 1]], -1
+    )
     root = np.stack([0.012 * sway[:, 3], 0.035 * sway[:, 4], 0.035 * weight], -1)  # pitch, yaw, roll
     breath_hz = rng.uniform(0.2, 0.3)
     breath = np.sin(2 * np.pi * breath_hz * times + rng.uniform(0, 2 * np.pi))

@@ -18,8 +18,17 @@ from gesture.data.audio import load_audio
 from gesture.synth.agent import AgentMotion, synthesize_agent_motion
 from gesture.synth.calibration import MicroNoise
 from gesture.synth.config import SynthConfig
-from gesture.synth.conversation import (AGENT, ENVELOPE_HOP_S, STROKE_SEARCH_S, USER, Conversation, SpokenWord, Turn,
-                                        envelope, is_stressed)
+from gesture.synth.conversation import (
+    AGENT,
+    ENVELOPE_HOP_S,
+    STROKE_SEARCH_S,
+    USER,
+    Conversation,
+    SpokenWord,
+    Turn,
+    envelope,
+    is_stressed,
+)
 
 RECOGNISER_RATE_HZ = 24_000  # the rate the playback backend recognises at
 SENTENCE_PAUSE_S = 0.5
@@ -46,10 +55,13 @@ def _spoken(words: list[TimedWord], pcm: np.ndarray, sample_rate_hz: int) -> lis
     out = []
     for w in words:
         a = int(w.start_s / ENVELOPE_HOP_S)
-        search = env[a: a + int(STROKE_SEARCH_S / ENVELOPE_HOP_S)]
+        search = env[a : a + int(STROKE_SEARCH_S / ENVELOPE_HOP_S)]
         peak_s = (a + int(np.argmax(search))) * ENVELOPE_HOP_S if len(search) else w.start_s
-        out.append(SpokenWord(w.word, AGENT, w.start_s, max(w.end_s, w.start_s + 0.03), min(peak_s, w.end_s),
-                              is_stressed(w.word)))
+        out.append(
+            SpokenWord(
+                w.word, AGENT, w.start_s, max(w.end_s, w.start_s + 0.03), min(peak_s, w.end_s), is_stressed(w.word)
+            )
+        )
     return out
 
 
@@ -75,9 +87,13 @@ def monologue(pcm: np.ndarray, sample_rate_hz: int, words: list[TimedWord]) -> C
     return Conversation(duration_s, sample_rate_hz, channels, tuple(spoken), tuple(turns))
 
 
-def motion_for_recording(path: Path | str, seed: int = 0, cfg: SynthConfig | None = None,
-                         words: list[TimedWord] | None = None,
-                         micro: dict[int, MicroNoise] | None = None) -> tuple[Conversation, AgentMotion]:
+def motion_for_recording(
+    path: Path | str,
+    seed: int = 0,
+    cfg: SynthConfig | None = None,
+    words: list[TimedWord] | None = None,
+    micro: dict[int, MicroNoise] | None = None,
+) -> tuple[Conversation, AgentMotion]:
     """The synthetic agent's motion (25 fps) while it says the recording at ``path`` (``words``: its timed words,
     recognised when not given; ``micro``: see ``synthesize_agent_motion``)."""
     cfg = cfg or SynthConfig()

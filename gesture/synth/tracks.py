@@ -74,8 +74,9 @@ def smooth_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz:
     """(n_frames, dim) Gaussian-filtered white noise with unit standard deviation per column."""
     sigma = noise_sigma_frames(cutoff_hz, fps)
     pad = int(4 * sigma) + 1
-    x = gaussian_filter1d(rng.standard_normal((n_frames + 2 * pad, dim)), sigma, axis=0, mode="wrap",
-                          truncate=NOISE_TRUNCATE_SIGMAS)[pad:-pad]
+    x = gaussian_filter1d(
+        rng.standard_normal((n_frames + 2 * pad, dim)), sigma, axis=0, mode="wrap", truncate=NOISE_TRUNCATE_SIGMAS
+    )[pad:-pad]
     return x / np.maximum(x.std(0, keepdims=True), 1e-9)
 
 
@@ -100,8 +101,9 @@ def lowpass_warmup_frames(cutoff_hz: float, fps: float) -> int:
     return int(np.ceil(LOWPASS_WARMUP_TAUS * fps / (2 * np.pi * cutoff_hz)))
 
 
-def lowpass_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1,
-                  order: int = LOWPASS_ORDER) -> np.ndarray:
+def lowpass_noise(
+    rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1, order: int = LOWPASS_ORDER
+) -> np.ndarray:
     """(n_frames, dim) white noise through ``lowpass_sos``, unit standard deviation per column in expectation."""
     sos, warmup = lowpass_sos(cutoff_hz, fps, order), lowpass_warmup_frames(cutoff_hz, fps)
     out = sosfilt(sos, rng.standard_normal((warmup + n_frames, dim)), axis=0)[warmup:]

@@ -1,10 +1,11 @@
 """Where the real BEAT2 test clip lives (../shared/data/beat2 beside the project root)."""
 
+from ecas.core.paths import data_root
 from pathlib import Path
 
 import pytest
 
-BEAT2_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "beat2"
+BEAT2_DIR = data_root() / "beat2"
 CLIP_ID = "2_scott_0_1_1"
 CLIP_NPZ = BEAT2_DIR / f"{CLIP_ID}.npz"
 CLIP_WAV = BEAT2_DIR / f"{CLIP_ID}.wav"

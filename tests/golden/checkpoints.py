@@ -1,4 +1,4 @@
-"""What the shipped checkpoints (checkpoints/gesture_lm, checkpoints/codecs) produce for a seeded input, kept in
+"""What the shipped checkpoints (ecas/checkpoints/gesture_lm, ecas/checkpoints/codecs) produce for a seeded input, kept in
 tests/golden/checkpoints.npz and checked by tests/test_golden_checkpoints.py.
 
 Regenerate it after replacing the checkpoints (from the repository root):
@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.body import REGIONS
-from core.threads import limit_threads
+from ecas.core.body import REGIONS
+from ecas.core.paths import CHECKPOINTS_DIR
+from ecas.core.threads import limit_threads
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
@@ -31,7 +32,7 @@ from gesture.lm.model import GestureLM
 from gesture.lm.stepper import LMStepper
 
 REPO = Path(__file__).resolve().parents[2]
-LM_DIR, CODEC_DIR = REPO / "checkpoints" / "gesture_lm", REPO / "checkpoints" / "codecs"
+LM_DIR, CODEC_DIR = CHECKPOINTS_DIR / "gesture_lm", CHECKPOINTS_DIR / "codecs"
 GOLDEN = Path(__file__).with_name("checkpoints.npz")
 STEPS, SEED, SPEAKER, CFG_SCALE = 4, 7, 3, 1.3
 
@@ -56,8 +57,12 @@ def generator(lm: GestureLM, codecs: dict[str, GestureCodec]) -> GestureGenerato
 def generate(gen: GestureGenerator, text: np.ndarray, audio: np.ndarray) -> dict:
     """The generator's tokens and motion for the conditioning."""
     steps = [gen.step(int(text[t]), audio[:, t]) for t in range(STEPS)]
-    return {"tokens": np.stack([s.tokens for s in steps]), "poses": np.stack([s.poses for s in steps]),
-            "trans": np.stack([s.trans for s in steps]), "expressions": np.stack([s.expressions for s in steps])}
+    return {
+        "tokens": np.stack([s.tokens for s in steps]),
+        "poses": np.stack([s.poses for s in steps]),
+        "trans": np.stack([s.trans for s in steps]),
+        "expressions": np.stack([s.expressions for s in steps]),
+    }
 
 
 @torch.inference_mode()

@@ -14,7 +14,6 @@ import numpy as np
 import soundfile as sf
 import soxr
 
-
 log = logging.getLogger(__name__)
 
 FULL_SCALE = 1.0
@@ -61,8 +60,9 @@ def check_audio_file(path: str | Path) -> None:
 
 
 def _unreadable(path: Path, e: Exception) -> AudioFileError:
-    return AudioFileError(f"{path}: not a readable audio file ({_reason(e)}); "
-                          f"supported: {', '.join(sorted(sf.available_formats()))}")
+    return AudioFileError(
+        f"{path}: not a readable audio file ({_reason(e)}); supported: {', '.join(sorted(sf.available_formats()))}"
+    )
 
 
 def warn_if_truncated_wav(path: Path) -> None:
@@ -72,8 +72,12 @@ def warn_if_truncated_wav(path: Path) -> None:
         return
     declared_bytes, held_bytes, bytes_per_s = declared
     if declared_bytes not in WAV_STREAMING_SIZES and held_bytes < declared_bytes:
-        log.warning("%s: truncated WAV: its header declares %.2f s of audio, the file holds %.2f s", path,
-                    declared_bytes / bytes_per_s, held_bytes / bytes_per_s)
+        log.warning(
+            "%s: truncated WAV: its header declares %.2f s of audio, the file holds %.2f s",
+            path,
+            declared_bytes / bytes_per_s,
+            held_bytes / bytes_per_s,
+        )
 
 
 def wav_data_sizes(path: Path) -> tuple[int, int, int] | None:
@@ -100,8 +104,12 @@ def wav_data_sizes(path: Path) -> tuple[int, int, int] | None:
 def warn_if_beyond_full_scale(path: Path, audio: np.ndarray) -> None:
     beyond = int(np.count_nonzero(np.abs(audio) > FULL_SCALE))
     if beyond:
-        log.warning("%s: %d samples beyond ±1 full scale (peak %.2f); they clip when played or encoded", path,
-                    beyond, float(np.abs(audio).max()))
+        log.warning(
+            "%s: %d samples beyond ±1 full scale (peak %.2f); they clip when played or encoded",
+            path,
+            beyond,
+            float(np.abs(audio).max()),
+        )
 
 
 def _reason(e: Exception) -> str:

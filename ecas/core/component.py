@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 
-from core.messages import Message
+from ecas.core.messages import Message
 
 
 class StageFailed(RuntimeError):
@@ -27,7 +28,9 @@ class RunContext:
     live: bool
     seed: int
     session: str
-    addresses: dict[str, str] = field(default_factory=dict)  # process -> its bus address (`core.bus.bus_addresses`)
+    addresses: dict[str, str] = field(
+        default_factory=dict
+    )  # process -> its bus address (`ecas.core.bus.bus_addresses`)
 
 
 class Component(Protocol):
@@ -43,7 +46,7 @@ class Source(Protocol):
 
     paced: bool
 
-    def next_block(self, timeout_s: float) -> Optional[tuple[np.ndarray, Optional[int]]]:
+    def next_block(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
         """(pcm (1920,) float32, capture time of its last sample in monotonic ns or None); None when waiting."""
 
     @property

@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import collections
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Literal
+from typing import Literal
 
 import zmq
 
-from core.messages import Control, DecodeError, Message, MsgpackSerializer, Serializer
-from core.config import ConfigError
+from ecas.core.config import ConfigError
+from ecas.core.messages import Control, DecodeError, Message, MsgpackSerializer, Serializer
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +55,10 @@ class BusConfig:
 
     def __post_init__(self):
         if not 0 <= self.base_port <= 65535 - len(STAGES) - 2:
-            raise ConfigError(f"bus.base_port: must be a tcp port (1-{65535 - len(STAGES) - 2}), or 0 for free "
-                              f"ports; got {self.base_port}")
+            raise ConfigError(
+                f"bus.base_port: must be a tcp port (1-{65535 - len(STAGES) - 2}), or 0 for free "
+                f"ports; got {self.base_port}"
+            )
         if self.stall_timeout_s <= 0:
             raise ConfigError(f"bus.stall_timeout_s: must be > 0, got {self.stall_timeout_s}")
         for name in ("live_queue_steps", "credit_window_steps", "max_handler_failures"):
@@ -92,8 +95,9 @@ def bus_addresses(bus: BusConfig, ipc_dir: Path) -> dict[str, str]:
 class Publisher:
     """Binds one PUB socket and numbers each topic's messages (`seq`), so receivers can count losses."""
 
-    def __init__(self, ctx: zmq.Context, address: str, source: str, *, lossless: bool,
-                 serializer: Serializer | None = None):
+    def __init__(
+        self, ctx: zmq.Context, address: str, source: str, *, lossless: bool, serializer: Serializer | None = None
+    ):
         self.source = source
         self.serializer = serializer or MsgpackSerializer()
         self.socket = ctx.socket(zmq.PUB)
@@ -121,8 +125,16 @@ class Subscriber:
     whose every instance matters, such as the dialogue's words) are neither counted nor dropped.
     """
 
-    def __init__(self, ctx: zmq.Context, addresses: Iterable[str], topics: Iterable[str], *,
-                 live_queue: int | None, keep_topics: Iterable[str] = (), serializer: Serializer | None = None):
+    def __init__(
+        self,
+        ctx: zmq.Context,
+        addresses: Iterable[str],
+        topics: Iterable[str],
+        *,
+        live_queue: int | None,
+        keep_topics: Iterable[str] = (),
+        serializer: Serializer | None = None,
+    ):
         self.serializer = serializer or MsgpackSerializer()
         self.socket = ctx.socket(zmq.SUB)
         self.socket.setsockopt(zmq.RCVHWM, LIVE_HWM if live_queue else 0)

@@ -11,14 +11,15 @@ import dataclasses
 import enum
 import time
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol, Sequence
+from typing import Any, ClassVar, Protocol
 
 import msgpack
 import numpy as np
 
-from core.body import NUM_EXPRESSIONS, NUM_JOINTS
-from core.timing import FRAMES_PER_STEP, STEP_SAMPLES
+from ecas.core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from ecas.core.timing import FRAMES_PER_STEP, STEP_SAMPLES
 
 SCHEMA_VERSION = 1
 N_GESTURE_TOKENS = 20
@@ -265,8 +266,10 @@ def _decode_arrays(cls: type[Message], descriptors: list, buffers: Sequence[byte
             raise DecodeError(f"{cls.KIND.value}: unknown array field {name!r}")
         dtype, shape = np.dtype(dtype), tuple(shape)
         if dtype != f.metadata["dtype"] or (f.metadata["shape"] is not None and shape != f.metadata["shape"]):
-            raise DecodeError(f"{cls.KIND.value}.{name}: got {dtype}{shape}, expected {f.metadata['dtype']}"
-                              f"{f.metadata['shape'] or ''}")
+            raise DecodeError(
+                f"{cls.KIND.value}.{name}: got {dtype}{shape}, expected {f.metadata['dtype']}"
+                f"{f.metadata['shape'] or ''}"
+            )
         nbytes = int(np.prod(shape)) * dtype.itemsize
         if len(buffer) != nbytes:
             raise DecodeError(f"{cls.KIND.value}.{name}: buffer has {len(buffer)} bytes, expected {nbytes}")

@@ -24,8 +24,13 @@ class ConditionSpec:
             )
 
     def to_dict(self) -> dict:
-        return dict(name=self.name, text_vocab=self.text_vocab, audio_card=self.audio_card,
-                    embed_dim=self.embed_dim, n_audio_codebooks=self.n_audio_codebooks)
+        return dict(
+            name=self.name,
+            text_vocab=self.text_vocab,
+            audio_card=self.audio_card,
+            embed_dim=self.embed_dim,
+            n_audio_codebooks=self.n_audio_codebooks,
+        )
 
     @classmethod
     def from_dict(cls, d: dict) -> "ConditionSpec":
