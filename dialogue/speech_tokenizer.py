@@ -12,13 +12,13 @@ import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import librosa
 import numpy as np
 import torch
 from einops import rearrange
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from ecas.core.mel import mel_filterbank
 from ecas.core.paths import CHECKPOINTS_DIR
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
@@ -46,9 +46,7 @@ class CausalLogMel(nn.Module):
     def __init__(self, shape: TokenizerShape):
         super().__init__()
         self.shape = shape
-        mel = librosa.filters.mel(
-            sr=SAMPLE_RATE_HZ, n_fft=shape.window_samples, n_mels=shape.n_mels, fmin=50, fmax=8000
-        )
+        mel = mel_filterbank(SAMPLE_RATE_HZ, shape.window_samples, shape.n_mels, fmin_hz=50, fmax_hz=8000)
         self.register_buffer("mel_basis", torch.from_numpy(mel).float(), persistent=False)  # (M, F)
         self.register_buffer("window", torch.hann_window(shape.window_samples), persistent=False)
 

@@ -46,6 +46,7 @@ from scipy.signal import argrelextrema, get_window
 
 from ecas.core.body import JAW_JOINT, NUM_EXPRESSIONS, NUM_JOINTS, UPPER_BODY_JOINTS
 from ecas.core.errors import DataError
+from ecas.core.mel import mel_filterbank
 from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_rot6d, resample_motion, rot6d_to_axis_angle
 from gesture.body.skeleton import JOINT_NAMES, PARENTS, Skeleton, forward_kinematics, read_smplx_file
@@ -369,42 +370,6 @@ def beat_align_audio_window(audio_16k: np.ndarray, n_frames_30fps: int) -> np.nd
     return cut[margin : len(audio_16k) - margin]
 
 
-def _hz_to_mel_slaney(hz: np.ndarray) -> np.ndarray:
-    linear_hz_per_mel, log_start_hz = 200.0 / 3, 1000.0
-    log_start_mel, log_step = log_start_hz / linear_hz_per_mel, np.log(6.4) / 27.0
-    mels = hz / linear_hz_per_mel
-    high = hz >= log_start_hz
-    mels[high] = log_start_mel + np.log(hz[high] / log_start_hz) / log_step
-    return mels
-
-
-def _mel_to_hz_slaney(mels: np.ndarray) -> np.ndarray:
-    linear_hz_per_mel, log_start_hz = 200.0 / 3, 1000.0
-    log_start_mel, log_step = log_start_hz / linear_hz_per_mel, np.log(6.4) / 27.0
-    hz = linear_hz_per_mel * mels
-    high = mels >= log_start_mel
-    hz[high] = log_start_hz * np.exp(log_step * (mels[high] - log_start_mel))
-    return hz
-
-
-def mel_filterbank(sample_rate_hz: int, n_fft: int, n_mels: int = ONSET_MEL_BANDS) -> np.ndarray:
-    """(n_mels, 1 + n_fft/2) float32 triangular filters on the Slaney mel scale, area-normalised, 0..sr/2
-    (librosa.filters.mel's defaults)."""
-    fft_hz = np.fft.rfftfreq(n=n_fft, d=1.0 / sample_rate_hz)
-    edges_mel = np.linspace(
-        _hz_to_mel_slaney(np.array([0.0]))[0], _hz_to_mel_slaney(np.array([0.5 * sample_rate_hz]))[0], n_mels + 2
-    )
-    edges_hz = _mel_to_hz_slaney(edges_mel)
-    widths = np.diff(edges_hz)
-    ramps = np.subtract.outer(edges_hz, fft_hz)  # (n_mels + 2, F)
-    weights = np.zeros((n_mels, len(fft_hz)), np.float32)
-    for i in range(n_mels):
-        rising, falling = -ramps[i] / widths[i], ramps[i + 2] / widths[i + 1]
-        weights[i] = np.maximum(0, np.minimum(rising, falling))
-    weights *= (2.0 / (edges_hz[2 : n_mels + 2] - edges_hz[:n_mels]))[:, None]
-    return weights
-
-
 def onset_strength(
     y: np.ndarray, sample_rate_hz: int, hop: int = ONSET_HOP_SAMPLES, n_fft: int = ONSET_FFT_SAMPLES
 ) -> np.ndarray:
@@ -416,7 +381,9 @@ def onset_strength(
     window = get_window("hann", n_fft, fftbins=True)  # float64, periodic
     spectrum = np.fft.rfft(frames * window, axis=-1).astype(np.complex64)  # (T, F)
     power = (np.abs(spectrum) ** 2).T  # (F, T), column-major like librosa's stft matrix
-    mel = np.abs(np.einsum("...ft,mf->...mt", power, mel_filterbank(sample_rate_hz, n_fft), optimize=True))
+    mel = np.abs(
+        np.einsum("...ft,mf->...mt", power, mel_filterbank(sample_rate_hz, n_fft, ONSET_MEL_BANDS), optimize=True)
+    )
     log_mel = 10.0 * np.log10(np.maximum(1e-10, mel))  # dB re 1.0, floored 80 dB below the peak
     log_mel -= 10.0 * np.log10(np.maximum(1e-10, 1.0))
     log_mel = np.maximum(log_mel, log_mel.max() - 80.0)
