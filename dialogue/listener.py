@@ -10,9 +10,8 @@ from dialogue.echo import EchoGate
 from dialogue.resample import StreamResampler
 from dialogue.vad import VAD_CHUNK_S, VAD_RATE_HZ, SileroVad, VadEvent, VadStateMachine
 from ecas.core.messages import VadState
-from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
+from ecas.core.timing import SAMPLE_RATE_HZ, STEP_S, STEP_SAMPLES
 
-STEP_S = STEP_SAMPLES / SAMPLE_RATE_HZ
 STEP_16K = STEP_SAMPLES * VAD_RATE_HZ // SAMPLE_RATE_HZ  # 1280
 PREROLL_S = 0.3  # audio before the VAD's speech start that the recogniser also hears
 HISTORY_S = 1.5  # 16 kHz audio kept for the pre-roll

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from dialogue.config import DialogueConfig
-from dialogue.listener import STEP_S, Heard, ListeningBackend, UserListener
+from dialogue.listener import Heard, ListeningBackend, UserListener
 from dialogue.responder import Reply, Responder, build_responder
 from dialogue.speaker import Speaker, SpokenStep
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, StreamingSpeechEncoder
@@ -19,7 +19,7 @@ from dialogue.text_vocab import LOCAL_SPEC
 from dialogue.transcript import Transcript, Turn, Word
 from dialogue.tts import EspeakTts
 from ecas.core.messages import DialogueStep, VadState
-from ecas.core.timing import STEP_SAMPLES
+from ecas.core.timing import STEP_S, STEP_SAMPLES
 
 
 def check_user_pcm(user_pcm: np.ndarray) -> np.ndarray:

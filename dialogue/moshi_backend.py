@@ -13,11 +13,12 @@ import numpy as np
 import torch
 
 from dialogue.config import DialogueConfig, MoshiConfig
-from dialogue.listener import STEP_S, ListeningBackend, UserListener
+from dialogue.listener import ListeningBackend, UserListener
 from dialogue.local_backend import check_user_pcm, user_turn_from
 from dialogue.transcript import Transcript, Turn, Word
 from ecas.core.messages import DialogueStep
 from ecas.core.spec import ConditionSpec
+from ecas.core.timing import STEP_S
 
 N_CODES = 8
 EXPECTED_FILES = {

@@ -41,7 +41,7 @@ class MicroMotionConfig:
     # The neck's and head's slow drift (gesture.micro_motion.HeadDrift; 0: none): its std per axis and its cutoff
     head_drift_rad: float = 0.0
     head_drift_hz: float = 0.17
-    # The collars' noise cutoff (gesture.micro_motion.COLLARS; 0: the fitted one, about 3 Hz)
+    # The collars' noise cutoff (ecas.core.body.COLLARS; 0: the fitted one, about 3 Hz)
     collar_cutoff_hz: float = 0.0
 
     def __post_init__(self) -> None:

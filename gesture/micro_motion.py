@@ -41,6 +41,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ecas.core.body import NECK_HEAD
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.config import IdleGateConfig
 from gesture.synth.agent import (
@@ -68,9 +69,8 @@ SPEAKING_RMS = IdleGateConfig.l2_threshold / np.sqrt(IdleGateConfig.window_sampl
 VOICED_RMS = 1e-3  # frames above it count towards the envelope's loud level (gesture.synth.agent.speech_envelope)
 LOUD_QUANTILE = 0.95  # the envelope divides by this quantile of the voiced frames' RMS ...
 LOUD_RATE = 0.02  # ... tracked causally: it moves by about this fraction per voiced frame
-HEAD_DRIFT_JOINTS = (12, 15)  # neck, head
+HEAD_DRIFT_JOINTS = NECK_HEAD
 HEAD_DRIFT_STREAM = 1  # the drift's random stream, apart from the layer's: the other joints' noise stays the same
-COLLARS = (13, 14)
 
 
 def gaussian_kernel(cutoff_hz: float, fps: float) -> np.ndarray:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ecas.core.body import COLLARS
 from ecas.core.component import RunContext
 from ecas.core.config import ConfigError
 from ecas.core.messages import DialogueStep, GestureStep, Message
@@ -40,7 +41,7 @@ from gesture.generator import GestureGenerator
 from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
-from gesture.micro_motion import COLLARS, HeadDrift, MicroMotion, calibrated_micro_motion
+from gesture.micro_motion import HeadDrift, MicroMotion, calibrated_micro_motion
 from gesture.nn.weights import UnsupportedFormError, require_fast_form
 from gesture.stabilizer import ArmStabilizer
 

@@ -6,6 +6,7 @@ import pytest
 import torch
 from scipy.signal import sosfilt
 
+from ecas.core.body import COLLARS
 from ecas.core.config import ConfigError
 from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle_np
@@ -13,7 +14,6 @@ from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
 from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.micro_motion import (
-    COLLARS,
     HEAD_DRIFT_JOINTS,
     SPEAKING_RMS,
     CausalSmoothNoise,

@@ -61,6 +61,7 @@ import torch
 from scipy.ndimage import binary_closing, gaussian_filter1d, label, median_filter
 from scipy.signal import find_peaks
 
+from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, WRISTS
 from ecas.core.errors import DataError
 from ecas.core.paths import DEFAULT_CONFIG, data_root
 from ecas.core.threads import limit_threads
@@ -82,11 +83,11 @@ MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
 DEFAULT_APP_CONFIG = DEFAULT_CONFIG
 
 JOINT_GROUPS = {
-    "wrists": (20, 21),
-    "elbows": (18, 19),
-    "shoulders": (16, 17),
-    "collars": (13, 14),
-    "neck_head": (12, 15),
+    "wrists": WRISTS,
+    "elbows": ELBOWS,
+    "shoulders": SHOULDERS,
+    "collars": COLLARS,
+    "neck_head": NECK_HEAD,
     "spine": (3, 6, 9),
 }
 # the config sections of the layers after decoding
@@ -97,7 +98,6 @@ STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)
 WORLD_PARTS = {"chest": (0, 3, 6, 9), "head": (0, 3, 6, 9, 12, 15)}  # root-to-part chains measured in space
 EDGE_S = 2.0
-PELVIS, WRISTS, ANKLES = 0, (20, 21), (7, 8)
 PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
 STEP_MPS, STEP_MIN_M, STEP_SMOOTH_FRAMES = 0.1, 0.03, 1.0  # a step: an ankle faster than this, ending this far away
 STROKE_SPEED_MPS = 0.35  # a stroke: a wrist speed peak at least this fast ...

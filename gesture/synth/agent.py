@@ -23,7 +23,7 @@ import torch
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 from scipy.special import ndtr
 
-from ecas.core.body import NUM_JOINTS
+from ecas.core.body import COLLARS, ELBOWS, NUM_JOINTS, WRISTS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
 from gesture.body.skeleton import Skeleton, forward_kinematics
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
@@ -54,7 +54,7 @@ ELBOW_GATE_LOG_STD = 1.05
 # speaker's share of frames (median of 8 seeds), and the agent, whose runtime layer adds this motion to decoded
 # wrists, in 0.52-0.63x on three of five seeds.
 WRIST_GATE_LOG_STD = 0.85
-OWN_GATES = (((18, 19), ELBOW_GATE_LOG_STD), ((20, 21), WRIST_GATE_LOG_STD))  # joints with their own gates
+OWN_GATES = ((ELBOWS, ELBOW_GATE_LOG_STD), (WRISTS, WRIST_GATE_LOG_STD))  # joints with their own gates
 MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
 ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
 MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
@@ -72,9 +72,9 @@ ARM_MAX_FLEX_STEP_RAD = 0.25  # per frame (real: the fastest joint turns 0.40 ra
 # Soft limits (identity below the knee, tanh above it, never past the cap) at the real clip's tail: its collars reach
 # 0.60/0.68 (p99 0.52/0.57), elbows 1.91/2.45 (p99 1.86/2.37), wrists 1.22/1.30 (p99 1.11/1.17).
 JOINT_SOFT_LIMITS_RAD = {
-    **{j: (0.55, 0.68) for j in (13, 14)},
-    **{j: (2.2, 2.55) for j in (18, 19)},
-    **{j: (1.1, 1.4) for j in (20, 21)},
+    **{j: (0.55, 0.68) for j in COLLARS},
+    **{j: (2.2, 2.55) for j in ELBOWS},
+    **{j: (1.1, 1.4) for j in WRISTS},
 }  # joint -> (knee, cap)
 # The collars take part of each upper arm's swing (as a real shoulder girdle does): the collar turns by this share of
 # the upper arm's rotation (chest frame) away from its median direction, smoothed over COLLAR_SMOOTH_S. The arm IK

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ecas.core.body import HAND_JOINTS
+from ecas.core.body import HAND_JOINTS, WRISTS
 from gesture.body.rotation import (
     axis_angle_to_matrix,
     axis_angle_to_quaternion,
@@ -41,7 +41,6 @@ from gesture.body.skeleton import Skeleton, forward_kinematics_np
 CALIBRATION_JSON = Path(__file__).with_name("calibration.json")
 BASE_JOINTS = (0, 3, 6, 9, 12, 13, 14, 15, 22)  # root, spines, neck, collars, head, jaw
 CHEST_JOINT = 9
-WRIST_JOINTS = (20, 21)
 PERCENTILES = (5, 50, 95)
 
 
@@ -92,10 +91,10 @@ def calibrate(npz_path: Path | str) -> Calibration:
     chest_rot = transforms[:, CHEST_JOINT, :3, :3]  # (T, 3, 3)
     chest_pos = joints[:, CHEST_JOINT]
     wrists = []
-    for j in WRIST_JOINTS:
+    for j in WRISTS:
         local = np.einsum("tji,tj->ti", chest_rot, joints[:, j] - chest_pos)  # R^T (p - c), (T, 3)
         wrists.append(np.percentile(local, PERCENTILES, axis=0))  # (3, 3)
-    speed = np.linalg.norm(np.diff(joints[:, list(WRIST_JOINTS)], axis=0), axis=-1) * fps  # (T-1, 2)
+    speed = np.linalg.norm(np.diff(joints[:, list(WRISTS)], axis=0), axis=-1) * fps  # (T-1, 2)
     return Calibration(base, hands.astype(np.float64), np.stack(wrists), float(speed.mean()))
 
 
