@@ -31,6 +31,31 @@ class VadConfig:
 
 
 @dataclass(frozen=True)
+class TurnConfig:
+    """When the user's turn ends (dialogue/end_of_turn.py).
+
+    detector "silence": after `vad.stop_s` of silence. "smart_turn": after `min_wait_s` of silence the smart-turn
+    model judges the user's recent audio; a probability >= `threshold` ends the turn there, otherwise the agent
+    keeps listening until the user speaks again or `max_wait_s` of silence have passed.
+    """
+
+    detector: Literal["silence", "smart_turn"] = "smart_turn"
+    threshold: float = 0.5  # probability of a complete turn that ends it
+    min_wait_s: float = 0.2  # silence before the model is asked
+    max_wait_s: float = 2.0  # silence after which the turn ends anyway
+    model: str | None = None  # an ONNX file; None: ecas/checkpoints/smart_turn/smart-turn-v3.2-cpu.onnx
+
+    def __post_init__(self):
+        _require(0 < self.threshold < 1, "turn.threshold", f"must be in (0, 1), got {self.threshold}")
+        _require(0 < self.min_wait_s <= 2.0, "turn.min_wait_s", f"must be in (0, 2], got {self.min_wait_s}")
+        _require(
+            self.min_wait_s <= self.max_wait_s <= 10.0,
+            "turn.max_wait_s",
+            f"must be in [min_wait_s, 10] = [{self.min_wait_s}, 10], got {self.max_wait_s}",
+        )
+
+
+@dataclass(frozen=True)
 class EchoConfig:
     """Echo suppression for loudspeakers: the agent's own played voice must not trigger barge-in.
 
@@ -140,6 +165,7 @@ class DialogueConfig:
     speech_tokenizer: str | None = None  # None: ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
     transcript_name: str = "transcript.json"
     vad: VadConfig = field(default_factory=VadConfig)
+    turn: TurnConfig = field(default_factory=TurnConfig)
     echo: EchoConfig = field(default_factory=EchoConfig)
     asr: AsrConfig = field(default_factory=AsrConfig)
     tts: TtsConfig = field(default_factory=TtsConfig)

@@ -103,7 +103,7 @@ class LocalBackend(ListeningBackend):
         tts = EspeakTts(cfg.tts.voice, cfg.tts.rate_wpm, cfg.tts.pitch)
         tts.synthesize("Hello.")  # loads the voice now, and fails early on a bad one
         backend = cls(
-            UserListener(cfg.vad, cfg.echo, cfg.asr),
+            UserListener(cfg.vad, cfg.echo, cfg.asr, cfg.turn),
             tts,
             responder,
             load_speech_tokenizer(cfg.speech_tokenizer),
