@@ -159,7 +159,8 @@ def test_the_agent_waits_through_a_pause_and_answers_the_end(case, tmp_path):
     assert len(user) == 1 and user[0]["start_s"] < pause_start_s < user[0]["end_s"]  # one turn across the pause
     # While the user pauses the agent listens: no reply, no agent text, the turn still the user's.
     pause = steps[int(pause_start_s / STEP_S) + 4 : int((pause_start_s + PAUSE_S) / STEP_S) - 1]
-    assert pause and all(not s.agent_speaking and not s.text_piece and not s.user_words for s in pause)
+    assert pause and all(not s.agent_speaking and not s.agent_pcm.any() and not s.text_piece for s in pause)
+    assert not any(s.user_words for s in pause)  # no user turn was handed to the responder
     assert {s.user_vad_state for s in pause} <= {VadState.STOPPING, VadState.SPEAKING}
 
 
