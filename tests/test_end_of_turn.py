@@ -11,11 +11,12 @@ import soundfile as sf
 from scipy.signal import resample_poly
 
 from bench.dialogue import LIBRIVOX_BREATH_S, PAUSE_S, split_sentence, two_sentences
-from dialogue.config import ConfigError, TurnConfig
+from dialogue.config import ConfigError, EchoConfig, TurnConfig, VadConfig
 from dialogue.end_of_turn import N_FRAMES, N_MELS, RATE_HZ, WINDOW_SAMPLES, EndOfTurnState, SmartTurn, log_mel
+from dialogue.listener import UserListener
 from ecas.core.messages import VadState
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_S
-from tests.dialogue_helpers import BEAT2_WAV, LIBRIVOX, dialogue_cfg, load_24k, run_component, silence
+from tests.dialogue_helpers import BEAT2_WAV, LIBRIVOX, blocks, dialogue_cfg, load_24k, run_component, silence
 
 ANSWER_WITHIN_S = 1.0
 TAIL_S = 5.0
@@ -185,3 +186,16 @@ def test_the_turn_ends_after_the_longest_wait_when_the_model_hears_no_end(tmp_pa
     )
     (start_s,) = agent_starts(transcript)
     assert max_wait_s <= start_s - end_s <= max_wait_s + ANSWER_WITHIN_S
+
+
+def test_the_listener_asks_the_model_once_per_pause_and_keeps_one_turn():
+    """Without recognition: one turn across the 1.5 s pause, the model asked at the pause and at the end."""
+    pcm, pause_start_s = at_24k(split_sentence)
+    end_s = speech_end_s(pcm)
+    turn = TurnConfig(detector="smart_turn")
+    listener = UserListener(VadConfig(), EchoConfig(), None, turn)
+    events = [e for block in blocks(np.concatenate([pcm, silence(3.0)])) for e in listener.step(block, None).events]
+    model = listener.turns.end_of_turn
+    assert [e.kind for e in events] == ["start", "end"] and events[0].t_s < pause_start_s
+    assert end_s - 0.1 < events[1].t_s < end_s + 0.2  # the turn ends where the speech does
+    assert model.state.calls == 2 and model.state.last_probability >= turn.threshold
