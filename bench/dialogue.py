@@ -37,18 +37,6 @@ GOAL_P99_MS = 40.0
 GOAL_P99_RATIO = 2.0  # the step p99 with the end-of-turn model over that with silence detection, same run
 
 
-def conversation(beat2_s: float, pause_s: float) -> np.ndarray:
-    """librivox, a pause, the first seconds of the BEAT2 speech, a pause: two user turns of real speech."""
-    parts = []
-    for path, seconds in zip(RECORDINGS, (None, beat2_s)):
-        pcm, rate = sf.read(str(path), dtype="float32", always_2d=True)
-        pcm = resample_poly(pcm.mean(1), SAMPLE_RATE_HZ, rate).astype(np.float32)
-        turn = pcm[: int(seconds * SAMPLE_RATE_HZ)] if seconds else pcm
-        parts += [turn, np.zeros(int(pause_s * SAMPLE_RATE_HZ), np.float32)]
-    pcm = np.concatenate(parts)
-    return pcm[: len(pcm) // STEP_SAMPLES * STEP_SAMPLES]
-
-
 # The end-of-turn cases, assembled from real recordings (tests/test_end_of_turn.py, docs/turn_taking.md): a pause
 # is lengthened to PAUSE_S with the recording's own background (a quiet stretch, tiled).
 PAUSE_S = 1.5
@@ -100,6 +88,21 @@ def turn_counts(transcript: dict) -> dict:
         "last_word_s": round(last_word_s, 2),
         "answer_after_last_word_s": round(min(answers), 2) if answers else None,
     }
+
+
+def conversation(beat2_s: float, pause_s: float, with_cases: bool = True) -> np.ndarray:
+    """librivox, a pause, the first seconds of the BEAT2 speech, a pause: two user turns of real speech; then the
+    two end-of-turn cases (a turn with a 1.5 s pause inside), each followed by a pause."""
+    parts = []
+    for path, seconds in zip(RECORDINGS, (None, beat2_s)):
+        pcm, rate = sf.read(str(path), dtype="float32", always_2d=True)
+        turn = pcm.mean(1)[: int(seconds * rate)] if seconds else pcm.mean(1)
+        parts += [(turn, rate)]
+    if with_cases:
+        parts += [case()[:2] for case in (split_sentence, two_sentences)]
+    gap = np.zeros(int(pause_s * SAMPLE_RATE_HZ), np.float32)
+    pcm = np.concatenate([x for turn, rate in parts for x in (resample_poly(turn, SAMPLE_RATE_HZ, rate), gap)])
+    return pcm[: len(pcm) // STEP_SAMPLES * STEP_SAMPLES].astype(np.float32)
 
 
 def _timed(obj, name: str, label: str, totals: dict) -> None:
@@ -180,9 +183,9 @@ def run_backend(detector: str, pcm: np.ndarray, rng: np.random.Generator) -> dic
     }
 
 
-def run(beat2_s: float, pause_s: float) -> dict:
+def run(beat2_s: float, pause_s: float, with_cases: bool = True) -> dict:
     torch.set_num_threads(1)
-    pcm = conversation(beat2_s, pause_s)
+    pcm = conversation(beat2_s, pause_s, with_cases)
     rng = np.random.default_rng(0)
     silence, smart = run_backend("silence", pcm, rng), run_backend("smart_turn", pcm, rng)
     p99_ratio = smart.pop("_p99") / silence.pop("_p99")
@@ -211,6 +214,7 @@ def main(argv=None) -> None:
     p.add_argument("--beat2-s", type=float, default=12.0, help="seconds of the BEAT2 speech used as the second turn")
     p.add_argument("--pause-s", type=float, default=4.0, help="silence after each user turn")
     p.add_argument("--write-cases", type=Path, metavar="DIR", help="write the end-of-turn cases as WAVs and stop")
+    p.add_argument("--no-cases", action="store_true", help="only the first two turns (27 s), not the pause cases")
     p.add_argument("--count", type=Path, nargs="+", metavar="RUN_DIR", help="count turns in launch.py reports")
     a = p.parse_args(argv)
     if a.count:
@@ -221,7 +225,7 @@ def main(argv=None) -> None:
         for path in write_cases(a.write_cases):
             print(path)
         return
-    report = run(a.beat2_s, a.pause_s)
+    report = run(a.beat2_s, a.pause_s, not a.no_cases)
     if a.json:
         print(json.dumps(report, indent=2))
     else:
