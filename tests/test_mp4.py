@@ -193,6 +193,28 @@ def test_render_component_live_drops_late_frames_and_keeps_sync(tmp_path):
     check_av_sync(decode(out), 8)  # dropped frames repeat the last one: the audio keeps its place
 
 
+@needs_osmesa
+def test_render_component_reads_capture_times_on_its_own_clock(tmp_path):
+    """The capturing stage on another host: its clock 10 s behind this one. With the measured offset no frame is
+    late; without it every frame would look 10 s late and be dropped."""
+    import time
+
+    from render.process import create_component
+
+    cfg = RenderConfig(live_size=64, encoding="rgb24", max_lag_ms=2000)
+    behind_ns = 10 * 10**9
+    for offset_ns, expected_frames in ((behind_ns, 2), (0, 0)):
+        component = create_component(cfg, RunContext(run_dir=tmp_path, live=True, seed=0, session="t"))
+        component.set_origin_offset_ns(offset_ns)
+        try:
+            dialogue, gesture = next(_steps(1))
+            gesture.t_origin_ns = time.monotonic_ns() - behind_ns
+            component.handle(dialogue)
+            assert len(component.handle(gesture)) == expected_frames
+        finally:
+            component.close()
+
+
 class _RecordingWriter:
     """Stands in for Mp4Writer in the timeline tests: records what would be encoded."""
 
