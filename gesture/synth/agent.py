@@ -23,7 +23,7 @@ import torch
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
 from scipy.special import ndtr
 
-from ecas.core.body import COLLARS, ELBOWS, NUM_JOINTS, WRISTS
+from ecas.core.body import COLLARS, ELBOWS, NECK_HEAD, NUM_JOINTS, PELVIS, SHOULDERS, SPINE, WRISTS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
 from gesture.body.skeleton import Skeleton, forward_kinematics
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
@@ -56,8 +56,14 @@ ELBOW_GATE_LOG_STD = 1.05
 WRIST_GATE_LOG_STD = 0.85
 OWN_GATES = ((ELBOWS, ELBOW_GATE_LOG_STD), (WRISTS, WRIST_GATE_LOG_STD))  # joints with their own gates
 MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
-ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
-MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
+ELBOW_SIDES = {
+    ELBOWS[0]: 1.0,
+    ELBOWS[1]: -1.0,
+}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
+MICRO_PARTS = (  # pelvis, torso + head; left arm; right arm
+    (PELVIS, *SPINE, *NECK_HEAD),
+    *((COLLARS[side], SHOULDERS[side], ELBOWS[side], WRISTS[side]) for side in (0, 1)),
+)
 ROOT_MICRO_MAX_RAD = 0.45  # the pelvis's micro-motion turns it at most about this far (soft limit, tanh): over planted
 # feet a larger turn is a step, not a sway (the fitted noise's tail otherwise reaches ~1 rad)
 NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
@@ -317,10 +323,11 @@ class BodySolver:
         n = len(head)
         local = np.broadcast_to(np.eye(3), (n, NUM_JOINTS, 3, 3)).copy()
         local[:, 0] = _aa(posture.root_offset_aa) @ _aa(self.base[0])
-        for k, j in enumerate((3, 6, 9)):
+        for k, j in enumerate(SPINE):
             local[:, j] = _aa(posture.spine_offset_aa[:, k]) @ _aa(self.base[j])
-        local[:, 12] = _aa(NECK_SHARE * head) @ _aa(self.base[12])
-        local[:, 15] = _aa((1 - NECK_SHARE) * head) @ _aa(self.base[15])
+        neck, head_joint = NECK_HEAD
+        local[:, neck] = _aa(NECK_SHARE * head) @ _aa(self.base[neck])
+        local[:, head_joint] = _aa((1 - NECK_SHARE) * head) @ _aa(self.base[head_joint])
         raise_amount = np.clip((arms.wrist[..., 1] - rest_wrist_y) / 0.4, 0.0, 1.0)  # (T, 2)
         for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
             lift = posture.collar_lift + 0.1 * raise_amount[:, s]
