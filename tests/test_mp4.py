@@ -10,12 +10,10 @@ from ecas.core.messages import DialogueStep, GestureStep
 from ecas.core.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
 from render.config import RenderConfig
 from render.mp4 import BackgroundMp4Writer, Mp4Error, Mp4Writer
-from render.testing import (
-    BEAT2_NPZ,
-    BEAT2_WAV,
+from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
+from tests.render_helpers import (
     check_av_sync,
     decode,
-    needs_beat2,
     needs_osmesa,
     silhouette,
     silhouette_center,
@@ -87,7 +85,7 @@ def test_writer_rejects_bad_input(tmp_path):
 
 
 @needs_osmesa
-@needs_beat2
+@needs_clip
 def test_render_play_on_the_beat2_clip(tmp_path):
     from render.play import main
 
@@ -95,9 +93,9 @@ def test_render_play_on_the_beat2_clip(tmp_path):
     assert (
         main(
             [
-                str(BEAT2_NPZ),
+                str(CLIP_NPZ),
                 "--wav",
-                str(BEAT2_WAV),
+                str(CLIP_WAV),
                 "--mp4",
                 str(out),
                 "--size",

@@ -63,7 +63,7 @@ from scipy.signal import find_peaks
 
 from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, SPINE, WRISTS
 from ecas.core.errors import DataError
-from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.paths import DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
@@ -78,7 +78,7 @@ from gesture.eval import metrics as M
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED_BEAT2 = data_root() / "beat2"
-REAL_CLIP = SHARED_BEAT2 / "2_scott_0_1_1"
+REAL_CLIP = real_clip()
 MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
 DEFAULT_APP_CONFIG = DEFAULT_CONFIG
 

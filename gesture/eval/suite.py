@@ -37,7 +37,7 @@ import torch
 
 from ecas.core.body import REGIONS
 from ecas.core.config import build_dataclass, load_yaml
-from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.paths import DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from gesture.body.motion import canonicalize
@@ -72,8 +72,8 @@ GOALS = {
 class SuiteOptions:
     config: Path = DEFAULT_CONFIG
     synthetic_root: Path = REPO / "runs" / "suite_heldout"  # generated on first use (see ensure_heldout)
-    beat2_motion: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.npz"
-    beat2_wav: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.wav"
+    beat2_motion: Path = real_clip().with_suffix(".npz")
+    beat2_wav: Path = real_clip().with_suffix(".wav")
     mean_speed: Path = SHARED_DATA / "beat2" / "mean_vel_smplxflame_30.npy"
     heldout_sessions: int = 10
     heldout_seconds: float = 180.0

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ecas.core.body import COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, SPINE, WRISTS
-from ecas.core.paths import data_root
+from ecas.core.paths import real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
@@ -42,7 +42,7 @@ INITIAL_FAST_RATIO = 0.3  # the quick noise's size, relative to the slow one's, 
 MAX_FAST_RATIO = 3.0
 MAX_CUTOFF_HZ = 3.0  # faster noise is jitter, not motion (a joint whose planned motion is already too spread, the
 # shoulders, would otherwise buy its median speed with it)
-REAL_CLIP = data_root() / "beat2" / "2_scott_0_1_1"
+REAL_CLIP = real_clip()
 
 
 def rotation_residuals(poses: np.ndarray) -> np.ndarray:
