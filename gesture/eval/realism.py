@@ -92,7 +92,7 @@ JOINT_GROUPS = {
 }
 # the config sections of the layers after decoding
 RUNTIME_LAYERS = ("alternation_filter", "micro_motion", "face", "foot_lock", "stabilizer")
-GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four ...
+GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # the realism goals name these four ...
 GROUP_GOAL_RANGE = (0.67, 1.5)  # ... and this range for every ratio of theirs
 STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)

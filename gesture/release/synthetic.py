@@ -1,9 +1,9 @@
 """Random experiment directories in the layout of the official MIBURI release, at any size.
 
-The key names and shapes below are written from MIBURI-FACTS section 4 (and pinned against
-`state_dict_keys/*.tsv` by tests/test_convert_miburi.py at the reference sizes); they are independent
-of our own models, so converting such a directory is a real test of the converter. Used by the tests
-and by `python -m gesture.release.synthetic OUT [--full-size]` (a full-size random release to time the
+The key names and shapes below follow the release's checkpoint format (docs/reference_facts.md §4) and are
+checked against the reference's own key lists by tests/test_convert_miburi.py where those lists are present; they
+are independent of our own models, so converting such a directory is a real test of the converter. Used by the
+tests and by `python -m gesture.release.synthetic OUT [--full-size]` (a full-size random release to time the
 converter and the runtime on).
 
     root/
