@@ -1,6 +1,7 @@
 """Train the small causal speech tokenizer on espeak-ng voices and the real recordings in ../shared/data.
 
-    nice -n 10 python -m dialogue.train_speech_tokenizer --out ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
+    nice -n 10 python -m dialogue.train_speech_tokenizer \
+        --out ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
 
 Objective: log-mel reconstruction (L1) through an 8-level EMA residual VQ with quantizer dropout,
 plus a commitment term. Held out: librivox_0870.wav (real read speech) and unseen espeak sentences.
