@@ -18,6 +18,16 @@ from ecas.core.component import RunContext
 from ecas.core.messages import AudioUser, DialogueStep, GestureStep, Message, MsgpackSerializer, RenderFrame
 from ecas.core.timing import FRAMES_PER_STEP
 
+# `launch.py` options that put these components in place of the real dialogue, gesture and render stages
+TEST_STAGES = [
+    "--set",
+    "run.components.dialogue=tests.components:echo_dialogue",
+    "--set",
+    "run.components.gesture=tests.components:wave_gesture",
+    "--set",
+    "run.components.render=tests.components:recorder",
+]
+
 KILL_AT_STEP = "TEST_KILL_AT_STEP"  # the stage's process SIGKILLs itself at this step
 CORRUPT_AT_STEP = "TEST_CORRUPT_AT_STEP"  # the dialogue stage sends one truncated frame at this step
 RENDER_SLEEP_S = "TEST_RENDER_SLEEP_S"  # the recorder sleeps this long per frame

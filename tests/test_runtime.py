@@ -17,16 +17,9 @@ import soundfile as sf
 
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from tests import components
+from tests.components import TEST_STAGES
 
 ROOT = Path(__file__).resolve().parents[1]
-TEST_STAGES = [
-    "--set",
-    "run.components.dialogue=tests.components:echo_dialogue",
-    "--set",
-    "run.components.gesture=tests.components:wave_gesture",
-    "--set",
-    "run.components.render=tests.components:recorder",
-]
 TAIL_S = 0.32  # 4 steps of silence after the recording
 
 
