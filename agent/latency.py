@@ -202,11 +202,7 @@ def format_table(summary: dict) -> str:
         )
     e2e = summary["end_to_end_ms"]
     rows.append(("end to end", *(_fmt(e2e.get(k)) for k in ("p50", "p95", "p99", "max")), "1", "", ""))
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = [
-        "  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths))) for r in rows
-    ]
-    lines.insert(1, "-" * len(lines[0]))
+    lines = _aligned(rows)
     stream = summary.get("stream") or {}
     pace = (
         (
@@ -234,11 +230,7 @@ def format_offline_table(summary: dict) -> str:
                 str(c.get("lost", 0)),
             )
         )
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = [
-        "  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths))) for r in rows
-    ]
-    lines.insert(1, "-" * len(lines[0]))
+    lines = _aligned(rows)
     t = summary.get("throughput") or {}
     head = "offline run (paced by the credit window: throughput, not latency)"
     if t.get("realtime_factor") is not None:
@@ -262,6 +254,13 @@ def format_offline_table(summary: dict) -> str:
 
 def summary_source(summary: dict) -> str:
     return next(iter(summary["stages"]))
+
+
+def _aligned(rows: list[tuple[str, ...]]) -> list[str]:
+    """Rows as text columns: the first left-aligned, the others right-aligned; a rule under the header."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in rows]
+    return [lines[0], "-" * len(lines[0]), *lines[1:]]
 
 
 def _fmt(value) -> str:
