@@ -116,6 +116,10 @@ class Recorder(_Passive):
             for i in range(FRAMES_PER_STEP)
         ]
 
+    def set_origin_offset_ns(self, offset_ns: int) -> None:
+        """Recorded as a `clock` row: what the stage runner measured on START (ecas.core.component.ClockAware)."""
+        self.log.write(json.dumps({"topic": "clock", "origin_offset_ns": offset_ns}) + "\n")
+
     def close(self) -> None:
         self.log.close()
 
