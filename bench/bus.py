@@ -23,6 +23,7 @@ from bench.machine import machine_report
 from ecas.core.bus import Publisher, Subscriber
 from ecas.core.messages import Command, Control, GestureStep, RenderFrame
 from ecas.core.threads import limit_threads
+from ecas.core.timing import NS_PER_MS
 
 FRAME_SIDE = 512
 
@@ -84,7 +85,7 @@ def measure(address: str, kind: str, count: int, spacing_s: float) -> dict:
         sub.controls.clear()
         while sub.queue:
             msg = sub.queue.popleft()
-            latencies_ms.append((now - msg.t_ns) / 1e6)
+            latencies_ms.append((now - msg.t_ns) / NS_PER_MS)
             first_sent_ns = first_sent_ns or msg.t_ns
             last_ns = now
     finished.set()

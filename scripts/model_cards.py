@@ -186,15 +186,17 @@ so `gesture.speaker` is its index.
 ## Data
 {lm_data}
 Tokenized by `python -m gesture.data.tokenize` (train split only): gesture tokens from the three shipped codecs'
-encoders (of the synthetic sessions' gesture layer, `gesture_poses`, as the codecs were trained), the agent channel's speech codes, a text token at each agent word's first step (the clip's words from
-the local recogniser), voice activity per step.
+encoders (of the synthetic sessions' gesture layer, `gesture_poses`, as the codecs were trained), the agent
+channel's speech codes, a text token at each agent word's first step (the clip's words from the local recogniser),
+voice activity per step.
 
 ## Config
 `ecas/configs/lm/default_small.yaml`: d_model {meta["lm"]["d_model"]}, {meta["lm"]["temporal_layers"]} temporal layers,
 {meta["lm"]["depth_layers"]} depth layer(s), gated FFN {meta["lm"]["ffn_hidden"]}, VA head; AdamW lr
-{LM["lr"]:g}, batch {LM["batch_size"]} windows of {LM["window_steps"]} steps, {last["epoch"]} epochs (config: {LM["epochs"]}) of
-{LM["steps_per_epoch"]} steps, StepLR ×{LM["lr_gamma"]} every {LM["lr_step_epochs"]} epochs, CFG condition dropout,
-pad input dropout, dropout {meta["lm"]["dropout"]:g}, InfoNCE weight {LM["infonce_weight"]:g}, VA loss weight {LM["va_weight"]}.
+{LM["lr"]:g}, batch {LM["batch_size"]} windows of {LM["window_steps"]} steps, {last["epoch"]} epochs (config:
+{LM["epochs"]}) of {LM["steps_per_epoch"]} steps, StepLR ×{LM["lr_gamma"]} every {LM["lr_step_epochs"]} epochs, CFG
+condition dropout, pad input dropout, dropout {meta["lm"]["dropout"]:g}, InfoNCE weight {LM["infonce_weight"]:g}, VA
+loss weight {LM["va_weight"]}.
 
 ## Metrics
 Training losses, epoch 1: {fmt(first)}; epoch {last["epoch"]}: {fmt(last)} (`losses.json`, `loss_curve.png`).

@@ -16,17 +16,11 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from tests.components import TEST_STAGES
+
 ROOT = Path(__file__).resolve().parents[1]
 TMP = Path("/tmp")
 EXIT_USAGE = 2
-TEST_STAGES = [
-    "--set",
-    "run.components.dialogue=tests.components:echo_dialogue",
-    "--set",
-    "run.components.gesture=tests.components:wave_gesture",
-    "--set",
-    "run.components.render=tests.components:recorder",
-]
 
 
 @pytest.fixture

@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from ecas.core.body import REGIONS
 from ecas.core.config import ConfigError
-from ecas.core.paths import data_root
+from ecas.core.paths import real_clip
 from ecas.core.threads import limit_threads
 from gesture.body.skeleton import Skeleton
 from gesture.codec.build import build_codec
@@ -41,7 +41,7 @@ from gesture.codec.evaluation import evaluate
 from gesture.codec.losses import RegionLoss
 from gesture.codec.model import GestureCodec
 
-DEFAULT_DATA = data_root() / "beat2" / "2_scott_0_1_1.npz"
+DEFAULT_DATA = real_clip().with_suffix(".npz")
 
 
 def commitment_ramp(step: int, ramp_steps: int) -> float:

@@ -61,9 +61,9 @@ import torch
 from scipy.ndimage import binary_closing, gaussian_filter1d, label, median_filter
 from scipy.signal import find_peaks
 
-from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, WRISTS
+from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, SPINE, WRISTS
 from ecas.core.errors import DataError
-from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.paths import DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
@@ -78,7 +78,7 @@ from gesture.eval import metrics as M
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED_BEAT2 = data_root() / "beat2"
-REAL_CLIP = SHARED_BEAT2 / "2_scott_0_1_1"
+REAL_CLIP = real_clip()
 MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
 DEFAULT_APP_CONFIG = DEFAULT_CONFIG
 
@@ -88,15 +88,15 @@ JOINT_GROUPS = {
     "shoulders": SHOULDERS,
     "collars": COLLARS,
     "neck_head": NECK_HEAD,
-    "spine": (3, 6, 9),
+    "spine": SPINE,
 }
 # the config sections of the layers after decoding
 RUNTIME_LAYERS = ("alternation_filter", "micro_motion", "face", "foot_lock", "stabilizer")
-GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four ...
+GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # the realism goals name these four ...
 GROUP_GOAL_RANGE = (0.67, 1.5)  # ... and this range for every ratio of theirs
 STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)
-WORLD_PARTS = {"chest": (0, 3, 6, 9), "head": (0, 3, 6, 9, 12, 15)}  # root-to-part chains measured in space
+WORLD_PARTS = {"chest": (PELVIS, *SPINE), "head": (PELVIS, *SPINE, *NECK_HEAD)}  # root-to-part chains measured in space
 EDGE_S = 2.0
 PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
 STEP_MPS, STEP_MIN_M, STEP_SMOOTH_FRAMES = 0.1, 0.03, 1.0  # a step: an ankle faster than this, ending this far away
@@ -289,7 +289,8 @@ def step_count(ankle_xz: np.ndarray, fps: float = MOTION_FPS) -> int:
 
 def feet_stats(poses: np.ndarray, trans: np.ndarray, skeleton: Skeleton, fps: float = MOTION_FPS) -> dict:
     """The ankles' horizontal speed in the world (m/s): the fraction of frames they are planted, and its 90th
-    percentile (steps); steps per minute per ankle; how far the pelvis gets over the floor in one second (median, m/s)."""
+    percentile (steps); steps per minute per ankle; how far the pelvis gets over the floor in one second (median,
+    m/s)."""
     joints, _ = forward_kinematics_np(skeleton, np.asarray(poses, np.float32), np.asarray(trans, np.float32))
     floor = joints[..., [0, 2]]  # (T, J, 2)
     speed = np.linalg.norm(np.diff(floor[:, list(ANKLES)], axis=0), axis=-1).reshape(-1) * fps

@@ -1,7 +1,7 @@
 """Train the gesture LM: `python -m gesture.train_lm --config ecas/configs/lm/small.yaml --data DIR --out DIR`.
 
 Data: a directory in the format of `gesture.lm.data` (npz per recording + spec.json). Losses and schedules follow
-MIBURI-FACTS section 3 (weighted CE, InfoNCE on Gumbel-softmax latents, voice-activity BCE; warm-up, CFG condition
+docs/reference_facts.md §3 (weighted CE, InfoNCE on Gumbel-softmax latents, voice-activity BCE; warm-up, CFG condition
 dropout, pad input dropout, tau annealing) with epoch thresholds from the config. `--codecs DIR` takes the three
 trained codecs whose codebooks initialise the gesture tables and define the InfoNCE latents; without it the
 model's own random tables stand in (a smoke-test setting). Checkpoints (safetensors + sizes + condition spec) and

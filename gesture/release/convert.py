@@ -1,4 +1,4 @@
-"""Convert the official MIBURI release (MIBURI-FACTS sections 4 and 5) into our checkpoints.
+"""Convert the official MIBURI release (docs/reference_facts.md §4, §5) into our checkpoints.
 
     python -m gesture.convert_miburi --experiment-dir models/miburi/goodspk --codec-dir models/miburi/codecs \
         --out checkpoints/miburi-release [--character wayne]
