@@ -131,7 +131,7 @@ def quality(dtypes: list[str]) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas bench codec", description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=30)

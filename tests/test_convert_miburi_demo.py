@@ -43,7 +43,7 @@ def test_release_config_is_the_moshi_backend_with_the_converted_release():
     )
     assert g.idle.enabled and g.cfg_scale == 1.3 and g.speaker == 3
     text = CONFIG.read_text()
-    assert "CC BY-NC 4.0" in text and "python -m gesture.convert_miburi" in text
+    assert "CC BY-NC 4.0" in text and "ecas convert-miburi" in text
 
 
 @pytest.fixture(scope="module")

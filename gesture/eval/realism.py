@@ -1,6 +1,6 @@
 """Realism report: motion generated for real speech against the real speaker's motion on that speech.
 
-    python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
+    ecas realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
         [--config YAML] [--set KEY=VALUE ...]   (passed to launch.py, e.g. a candidate agent or other checkpoints)
         [--clip PATH/TAKE [--wav WAV]]   (another real take: TAKE.npz, and its speech TAKE.wav or WAV)
 
@@ -647,7 +647,7 @@ def format_table(report: dict) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m gesture.realism", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas realism", description=__doc__.splitlines()[0])
     p.add_argument(
         "--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline"
     )
@@ -730,3 +730,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     (out / "realism.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report) if args.json else format_table(report))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

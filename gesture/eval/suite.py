@@ -1,4 +1,4 @@
-"""The default agent's quality report: ``python -m gesture.evaluate --suite default [--json]``.
+"""The default agent's quality report: ``ecas evaluate --suite default [--json]``.
 
 It loads the generator exactly as the runtime does (the `gesture:` section of ecas/configs/default.yaml, checked
 against the local backend's condition spec) and measures:
@@ -248,7 +248,7 @@ def load_heldout(
     takes = _test_takes(root)[:n_sessions]
     if not takes:
         raise FileNotFoundError(
-            f"{root}: no held-out (test split) synthetic sessions; generate them with python -m gesture.data.synthetic"
+            f"{root}: no held-out (test split) synthetic sessions; generate them with ecas synthetic"
         )
     tokenizer = SpeechTokenizer.load(DEFAULT_CHECKPOINT)
     max_steps = int(max_seconds * STEP_HZ)
@@ -470,7 +470,7 @@ def _json_safe(value):
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
     defaults = SuiteOptions()
-    parser = argparse.ArgumentParser(description="Quality report of the shipped default agent.")
+    parser = argparse.ArgumentParser(prog="ecas suite", description="Quality report of the shipped default agent.")
     parser.add_argument("--suite", choices=["default"], default="default")
     parser.add_argument("--json", action="store_true", help="print one JSON object after the table")
     parser.add_argument("--config", type=Path, default=defaults.config, help="app config with the gesture: section")
@@ -506,3 +506,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.out:
         args.out.write_text(json.dumps(report, indent=1))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
