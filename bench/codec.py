@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -39,7 +38,6 @@ from gesture.codec.inference import INFERENCE_DTYPES, inference_codec
 from gesture.codec.streaming import StreamingDecoder
 from gesture.nn.weights import kernels_used, stored_weights
 
-REPO = Path(__file__).resolve().parents[1]
 CONFIG_DIR = CONFIGS_DIR / "codec"
 SHIPPED_CODECS = CHECKPOINTS_DIR / "codecs"
 BEAT2_CLIP = data_root() / "beat2" / "2_scott_0_1_1.npz"

@@ -35,8 +35,6 @@ from ecas.core.threads import limit_threads
 from gesture.data.beat2 import SPLITS, Take, find_takes
 from gesture.eval.realism import GOAL_GROUPS, GROUP_GOAL_RANGE
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def seed_summary(report: dict) -> dict:
     """One realism report (realism.json) -> the agent's goals, its ratios outside GROUP_GOAL_RANGE and its headline
@@ -80,7 +78,6 @@ def run_realism(seed: int, out: Path, config: Path, take: Take | None = None) ->
             str(run_dir),
             *clip,
         ],
-        cwd=ROOT,
         check=True,
         stdout=subprocess.DEVNULL,
     )
@@ -131,7 +128,6 @@ def run_suite(out: Path, config: Path) -> dict:
             "--out",
             str(path),
         ],
-        cwd=ROOT,
         check=True,
         stdout=subprocess.DEVNULL,
     )
@@ -145,7 +141,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--suite", action="store_true", help="also the held-out synthetic suite (slow)")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="the agent's app config")
-    p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_quality")
+    p.add_argument("--out", type=Path, default=Path("runs") / "bench_quality")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--beat2", type=Path, help="measure this BEAT2 directory's takes instead of the shared clip")
     p.add_argument("--speaker", default="scott", help="with --beat2: the speaker whose takes (default %(default)s)")
