@@ -4,8 +4,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 # torch's CPU build: pip prefers its 2.13.0+cpu to PyPI's 2.13.0 (a CUDA build on Linux). For CUDA, e.g.
-# `make setup TORCH_INDEX=https://download.pytorch.org/whl/cu128` (docs/install.md). An index pip cannot reach is
-# skipped with a warning (then PyPI's, or a local wheel's, torch of the locked version is installed).
+# `make setup TORCH_INDEX=https://download.pytorch.org/whl/cu128` (docs/install.md). Only torch is looked up there
+# (its own requirements come from the lock); an index pip cannot reach is skipped with a warning, and PyPI's (or a
+# local wheel's) torch of the locked version is installed.
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 # Python writes each module's bytecode the first time it imports it, once for all later processes (the tests start
 # about a hundred): where the environment sets PYTHONDONTWRITEBYTECODE, every process would compile torch again
@@ -26,7 +27,8 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml requirements.lock requirements-test.lock requirements-nodeps.txt scripts/install_system.sh
 	bash scripts/install_system.sh
 	test -x $(PY) || python3 -m venv $(VENV)
-	$(PIP_INSTALL) --extra-index-url $(TORCH_INDEX) -r requirements.lock -r requirements-test.lock
+	$(PIP_INSTALL) --no-deps --retries 2 --extra-index-url $(TORCH_INDEX) $$(grep '^torch==' requirements.lock)
+	$(PIP_INSTALL) -r requirements.lock -r requirements-test.lock
 	$(PIP_INSTALL) --no-deps --no-build-isolation -e .
 	$(PIP) check
 	$(PIP_INSTALL) --no-deps --upgrade --target $(MOSHI_OVERLAY) -r requirements-nodeps.txt
