@@ -114,7 +114,9 @@ def run(count: int) -> dict:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="ecas bench bus", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--count", type=int, default=2000, help="messages per measurement")
     p.add_argument("--json", action="store_true", help="print JSON only")
     args = p.parse_args(argv)

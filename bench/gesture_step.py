@@ -151,7 +151,7 @@ def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -
 
 def main(argv: list[str] | None = None) -> None:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas bench gesture-step", description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--steps", type=int, default=200, help="timed steps of the cached generator")
     parser.add_argument("--naive-steps", type=int, default=10, help="timed steps of the naive baseline")

@@ -153,7 +153,7 @@ def mp4_throughput(seconds: float | None) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.render", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas bench render", description=__doc__.splitlines()[0])
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--frames", type=int, default=60, help="timed frames per size and path")
     p.add_argument(

@@ -231,7 +231,7 @@ def train(out: Path, iterations: int, n_sentences: int, seed: int, batch: int, s
 
 def main(argv=None) -> None:
     limit_threads()
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas train-speech-tokenizer", description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=DEFAULT_CHECKPOINT)
     p.add_argument("--iterations", type=int, default=3000)
     p.add_argument("--sentences", type=int, default=600)

@@ -37,14 +37,15 @@ def test_release_config_is_the_moshi_backend_with_the_converted_release():
     assert Path(app.dialogue.moshi.mimi_weights).name == "tokenizer-e351c8d8-checkpoint125.safetensors"
     assert Path(app.dialogue.moshi.tokenizer).name == "tokenizer_spm_32k_3.model"
     g = app.gesture
+    release = Path.cwd() / "checkpoints" / "miburi-release"  # $PWD in the config: the working directory
     assert (g.lm_checkpoint, g.codec_checkpoints, g.idle.slices_dir) == (
-        Path("checkpoints/miburi-release/lm"),
-        Path("checkpoints/miburi-release/codecs"),
-        Path("checkpoints/miburi-release/idle"),
+        release / "lm",
+        release / "codecs",
+        release / "idle",
     )
     assert g.idle.enabled and g.cfg_scale == 1.3 and g.speaker == 3
     text = CONFIG.read_text()
-    assert "CC BY-NC 4.0" in text and "python -m gesture.convert_miburi" in text
+    assert "CC BY-NC 4.0" in text and "ecas convert-miburi" in text
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """Realism report: motion generated for real speech against the real speaker's motion on that speech.
 
-    python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
+    ecas realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
         [--config YAML] [--set KEY=VALUE ...]   (passed to launch.py, e.g. a candidate agent or other checkpoints)
         [--clip PATH/TAKE [--wav WAV]]   (another real take: TAKE.npz, and its speech TAKE.wav or WAV)
 
@@ -63,7 +63,7 @@ from scipy.signal import find_peaks
 
 from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, SPINE, WRISTS
 from ecas.core.errors import DataError
-from ecas.core.paths import DEFAULT_CONFIG, data_root, real_clip
+from ecas.core.paths import CHECKPOINTS_DIR, DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
@@ -76,7 +76,6 @@ from gesture.body.rotation import (
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.eval import metrics as M
 
-ROOT = Path(__file__).resolve().parents[2]
 SHARED_BEAT2 = data_root() / "beat2"
 REAL_CLIP = real_clip()
 MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
@@ -459,7 +458,8 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
     report_dir.mkdir(parents=True, exist_ok=True)
     cmd = [
         sys.executable,
-        str(ROOT / "launch.py"),
+        "-m",
+        "ecas.launch",
         "--config",
         str(config),
         "--speak",
@@ -471,12 +471,12 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
         str(report_dir),
     ] + [arg for item in overrides for arg in ("--set", item)]
     with open(report_dir / "launch.out", "w") as log:
-        subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
+        subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=True)
     return report_dir / "motion.npz"
 
 
 def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
-    """The codec directory of the app ``config`` with launch.py ``--set`` ``overrides`` (relative to the repository)."""
+    """The codec directory of the app ``config`` with ``--set`` ``overrides``."""
     from ecas.core.config import apply_override, build_dataclass, load_yaml, parse_override
     from gesture.config import GestureConfig
 
@@ -484,7 +484,7 @@ def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
     for text in overrides:
         apply_override(tree, *parse_override(text))
     codecs = build_dataclass(GestureConfig, tree.get("gesture"), "gesture").codec_checkpoints
-    return ROOT / (codecs if codecs is not None else "ecas/checkpoints/codecs")
+    return codecs if codecs is not None else CHECKPOINTS_DIR / "codecs"
 
 
 def halves(clip: M.MotionClip) -> tuple[M.MotionClip, M.MotionClip]:
@@ -648,7 +648,7 @@ def format_table(report: dict) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m gesture.realism", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas realism", description=__doc__.splitlines()[0])
     p.add_argument(
         "--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline"
     )
@@ -675,7 +675,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     args = p.parse_args(argv)
-    out = Path(args.out) if args.out else ROOT / "runs" / f"realism_seed{args.seed}"
+    out = Path(args.out) if args.out else Path("runs") / f"realism_seed{args.seed}"
     real_npz, wav = Path(args.clip + ".npz"), Path(args.wav or args.clip + ".wav")
     try:
         given = tuple(Path(x) for x in (args.motion, args.synthetic) if x)
@@ -731,3 +731,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     (out / "realism.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report) if args.json else format_table(report))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

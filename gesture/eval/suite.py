@@ -1,4 +1,4 @@
-"""The default agent's quality report: ``python -m gesture.evaluate --suite default [--json]``.
+"""The default agent's quality report: ``ecas evaluate --suite default [--json]``.
 
 It loads the generator exactly as the runtime does (the `gesture:` section of ecas/configs/default.yaml, checked
 against the local backend's condition spec) and measures:
@@ -37,7 +37,7 @@ import torch
 
 from ecas.core.body import REGIONS
 from ecas.core.config import build_dataclass, load_yaml
-from ecas.core.paths import DEFAULT_CONFIG, data_root, real_clip
+from ecas.core.paths import CHECKPOINTS_DIR, DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from gesture.body.motion import canonicalize
@@ -54,10 +54,9 @@ from gesture.generator import GestureGenerator
 from gesture.lm.codecs import load_codecs
 from gesture.lm.tokenize import TokenizedTake, agent_audio_path, tokenize_take
 
-REPO = Path(__file__).resolve().parents[2]
 SHARED_DATA = data_root()
-DEFAULT_LM = Path("ecas/checkpoints/gesture_lm")
-DEFAULT_CODECS = Path("ecas/checkpoints/codecs")
+DEFAULT_LM = CHECKPOINTS_DIR / "gesture_lm"
+DEFAULT_CODECS = CHECKPOINTS_DIR / "codecs"
 GOALS = {
     "l1div_rel_error_max": 0.25,  # |L1div / L1div_GT - 1|
     "beat_align_abs_error_max": 0.05,  # |BeatAlign - BeatAlign_GT|
@@ -71,7 +70,7 @@ GOALS = {
 @dataclass(frozen=True)
 class SuiteOptions:
     config: Path = DEFAULT_CONFIG
-    synthetic_root: Path = REPO / "runs" / "suite_heldout"  # generated on first use (see ensure_heldout)
+    synthetic_root: Path = Path("runs") / "suite_heldout"  # generated on first use (see ensure_heldout)
     beat2_motion: Path = real_clip().with_suffix(".npz")
     beat2_wav: Path = real_clip().with_suffix(".wav")
     mean_speed: Path = SHARED_DATA / "beat2" / "mean_vel_smplxflame_30.npy"
@@ -105,9 +104,9 @@ def default_gesture_config(config_path: Path) -> tuple[GestureConfig, object]:
     tree = load_yaml(config_path)
     gesture = build_dataclass(GestureConfig, tree.get("gesture"), "gesture")
     if gesture.lm_checkpoint is None:
-        gesture = dataclasses.replace(gesture, lm_checkpoint=REPO / DEFAULT_LM)
+        gesture = dataclasses.replace(gesture, lm_checkpoint=DEFAULT_LM)
     if gesture.codec_checkpoints is None:
-        gesture = dataclasses.replace(gesture, codec_checkpoints=REPO / DEFAULT_CODECS)
+        gesture = dataclasses.replace(gesture, codec_checkpoints=DEFAULT_CODECS)
     dialogue = build_dataclass(DialogueConfig, tree.get("dialogue"), "dialogue")
     return dataclasses.replace(gesture, dialogue_spec=LOCAL_SPEC), dialogue
 
@@ -248,7 +247,7 @@ def load_heldout(
     takes = _test_takes(root)[:n_sessions]
     if not takes:
         raise FileNotFoundError(
-            f"{root}: no held-out (test split) synthetic sessions; generate them with python -m gesture.data.synthetic"
+            f"{root}: no held-out (test split) synthetic sessions; generate them with ecas synthetic"
         )
     tokenizer = SpeechTokenizer.load(DEFAULT_CHECKPOINT)
     max_steps = int(max_seconds * STEP_HZ)
@@ -472,7 +471,7 @@ def _json_safe(value):
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
     defaults = SuiteOptions()
-    parser = argparse.ArgumentParser(description="Quality report of the shipped default agent.")
+    parser = argparse.ArgumentParser(prog="ecas suite", description="Quality report of the shipped default agent.")
     parser.add_argument("--suite", choices=["default"], default="default")
     parser.add_argument("--json", action="store_true", help="print one JSON object after the table")
     parser.add_argument("--config", type=Path, default=defaults.config, help="app config with the gesture: section")
@@ -508,3 +507,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.out:
         args.out.write_text(json.dumps(report, indent=1))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -120,7 +120,7 @@ def fit(
 
 def main(argv=None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m gesture.eval.synth_fit", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas synth-fit", description=__doc__.splitlines()[0])
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip without extension (.npz and .wav)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--iterations", type=int, default=10, help="the three statistics settle within 1-3 %% by 8")

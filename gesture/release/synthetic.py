@@ -331,7 +331,9 @@ def write_experiment(
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description="Write a random release in the official MIBURI layout.")
+    p = argparse.ArgumentParser(
+        prog="ecas fake-release", description="Write a random release in the official MIBURI layout."
+    )
     p.add_argument("out", type=Path)
     p.add_argument("--face-va", action="store_true", help="include the optional vad_face_proj head")
     p.add_argument("--seed", type=int, default=0)

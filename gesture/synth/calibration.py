@@ -135,7 +135,7 @@ def load_calibration() -> Calibration:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description="Recompute calibration.json from a BEAT2 npz.")
+    parser = argparse.ArgumentParser(prog="ecas calibrate", description="Recompute calibration.json from a BEAT2 npz.")
     parser.add_argument("npz", help="a BEAT2 SMPL-X npz, e.g. ../shared/data/beat2/2_scott_0_1_1.npz")
     parser.add_argument("--out", default=str(CALIBRATION_JSON))
     args = parser.parse_args(argv)
