@@ -209,7 +209,7 @@ def run(beat2_s: float, pause_s: float, with_cases: bool = True) -> dict:
 
 def main(argv=None) -> None:
     limit_threads()
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas bench dialogue", description=__doc__.splitlines()[0])
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--beat2-s", type=float, default=12.0, help="seconds of the BEAT2 speech used as the second turn")
     p.add_argument("--pause-s", type=float, default=4.0, help="silence after each user turn")

@@ -1,6 +1,7 @@
 """Options of the `dialogue:` section of the YAML config."""
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 from ecas.core.config import ConfigError
@@ -132,8 +133,8 @@ class ResponderConfig:
 class PlaybackConfig:
     """The agent speaks a recording; text tokens from `transcript` (whisper json, TextGrid or plain text)."""
 
-    speak: str | None = None
-    transcript: str | None = None
+    speak: Path | None = None
+    transcript: Path | None = None
     start_s: float = 0.0  # when the agent starts speaking, from the first step
 
 
@@ -141,11 +142,11 @@ class PlaybackConfig:
 class MoshiConfig:
     """Local files only: the LM weights, Mimi weights and the sentencepiece text tokenizer."""
 
-    lm_weights: str | None = None  # e.g. model.safetensors
-    mimi_weights: str | None = None  # e.g. tokenizer-e351c8d8-checkpoint125.safetensors
-    tokenizer: str | None = None  # e.g. tokenizer_spm_32k_3.model
-    lm_config: str | None = None  # a json of LM kwargs for non-default model sizes (None: Moshi 7B)
-    mimi_config: str | None = None  # a json of Mimi kwargs (None: the released Mimi)
+    lm_weights: Path | None = None  # e.g. model.safetensors
+    mimi_weights: Path | None = None  # e.g. tokenizer-e351c8d8-checkpoint125.safetensors
+    tokenizer: Path | None = None  # e.g. tokenizer_spm_32k_3.model
+    lm_config: Path | None = None  # a json of LM kwargs for non-default model sizes (None: Moshi 7B)
+    mimi_config: Path | None = None  # a json of Mimi kwargs (None: the released Mimi)
     device: str = "cpu"
     temp: float = 0.8
     temp_text: float = 0.7
@@ -162,7 +163,7 @@ class MoshiConfig:
 class DialogueConfig:
     backend: Literal["local", "moshi", "playback"] = "local"
     barge_in_s: float = 0.3  # user speech over the agent longer than this stops the agent
-    speech_tokenizer: str | None = None  # None: ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
+    speech_tokenizer: Path | None = None  # None: ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
     transcript_name: str = "transcript.json"
     vad: VadConfig = field(default_factory=VadConfig)
     turn: TurnConfig = field(default_factory=TurnConfig)

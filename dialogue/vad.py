@@ -108,11 +108,6 @@ class VadStateMachine:
         if self.end_of_turn is not None:
             self.end_of_turn.skip(seconds)
 
-    @property
-    def in_turn(self) -> bool:
-        """True while the user holds the turn (SPEAKING or STOPPING)."""
-        return self.state in (VadState.SPEAKING, VadState.STOPPING)
-
     def update(self, prob: float, dt_s: float = VAD_CHUNK_S) -> VadEvent | None:
         """Advance by one chunk of duration dt_s with speech probability prob."""
         speech, silence = prob >= self.start_threshold, prob < self.stop_threshold

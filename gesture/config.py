@@ -160,7 +160,7 @@ class StabilizerConfig:
 class GestureConfig:
     """The `gesture:` section: checkpoints, sampling, classifier-free guidance, idle gate, speaker."""
 
-    lm_checkpoint: Path | None = None  # a directory written by `python -m gesture.train_lm`
+    lm_checkpoint: Path | None = None  # a directory written by `ecas train-lm`
     codec_checkpoints: Path | None = None  # a directory holding the three codecs (upper, lower, face)
     temperature: float = 0.9
     top_p_temporal: float = 0.8

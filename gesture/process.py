@@ -5,7 +5,7 @@ dialogue backend's (`gesture.dialogue_spec`, filled in by the launcher), warms u
 A new session resets the generator. `close()` writes `gesture.json` (step count and step-time percentiles) and, in
 offline runs, `motion.npz`: every generated step in BEAT2's layout (poses (2T, 165), trans (2T, 3), expressions
 (2T, 100), mocap_frame_rate 25) plus tokens (T, 20) and va_prob (T,), so `python -m render.play`,
-`python -m gesture.evaluate --motion` and the data tools read it like a BEAT2 take. Live runs keep no record:
+`ecas evaluate --motion` and the data tools read it like a BEAT2 take. Live runs keep no record:
 nothing in a live session grows with time.
 """
 
@@ -123,7 +123,7 @@ def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
 def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
     """The generator of a `gesture:` section: checkpoints, spec check, sampling options, idle gate."""
     if cfg.lm_checkpoint is None:
-        raise ConfigError("gesture.lm_checkpoint: required (a directory written by python -m gesture.train_lm)")
+        raise ConfigError("gesture.lm_checkpoint: required (a directory written by ecas train-lm)")
     if cfg.codec_checkpoints is None:
         raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
     try:

@@ -10,8 +10,8 @@ from gesture.alternation_filter import AlternationFilter
 from gesture.config import TORSO_AND_LEG_JOINTS, AlternationFilterConfig
 from gesture.eval.realism import angular_speeds
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.process import build_alternation_filter
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 JOINTS = TORSO_AND_LEG_JOINTS
 

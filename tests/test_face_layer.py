@@ -11,11 +11,11 @@ from gesture.config import FaceLayerConfig
 from gesture.eval.realism import FACE_BASELINE_S, FACE_EVENTS, face_activations, face_stats
 from gesture.face_layer import BASELINE_S, BLINK_HEIGHT, BLINK_MIN_GAP_S, FaceLayer
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.process import build_face_layer
 from gesture.synth.face import BLINK_ROW, BLINKS_PER_MINUTE, BROW_ROW, expressions_from_activations
 from gesture.synth.tracks import add_bump
 from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 MINUTES = 10

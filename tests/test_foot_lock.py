@@ -12,8 +12,8 @@ from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.config import FootLockConfig
 from gesture.foot_lock import LEGS, FootLock
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.process import build_foot_lock
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 SKELETON = Skeleton.default()

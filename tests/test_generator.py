@@ -7,9 +7,9 @@ import torch
 from gesture.body.regions import LOWER_VELOCITY_SLICE
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.lm.idle import IdleGate
 from tests.kernels import KERNELS, using
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 

@@ -12,7 +12,6 @@ from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle_np
 from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.micro_motion import (
     HEAD_DRIFT_JOINTS,
     SPEAKING_RMS,
@@ -28,6 +27,7 @@ from gesture.synth import agent
 from gesture.synth.agent import MICRO_ENVELOPE_GAIN, micro_motion
 from gesture.synth.calibration import load_calibration
 from gesture.synth.tracks import lowpass_noise, lowpass_sos, smooth_noise
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)

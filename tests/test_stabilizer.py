@@ -11,9 +11,9 @@ from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_
 from gesture.config import StabilizerConfig
 from gesture.eval.realism import STILL_RAD_S, angular_speeds
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.process import build_stabilizer
 from gesture.stabilizer import ArmStabilizer
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 ARMS = (18, 19, 20, 21)

@@ -1,4 +1,4 @@
-"""Idle token slices for the runtime's idle gate (MIBURI-FACTS section 5) from tokenized training recordings.
+"""Idle token slices for the runtime's idle gate (docs/reference_facts.md §5) from tokenized training recordings.
 
     python -m gesture.lm.idle_slices --data runs/default/lm_data --out ecas/checkpoints/gesture_lm/idle
 
@@ -54,7 +54,7 @@ def write_idle_slices(out: Path, tokens: np.ndarray, n_upper: int, n_lower: int)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas idle-slices", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="directory of tokenized recordings (*.npz)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the two slice files")
     parser.add_argument("--trim-steps", type=int, default=4, help="steps dropped at each end of the stretch")

@@ -1,6 +1,6 @@
 """Synthetic dyadic conversations in the BEAT2 layout: training data for the default agent.
 
-    python -m gesture.data.synthetic --out data/synthetic --sessions 40 --minutes 3 --seed 0 [--jobs 2]
+    ecas synthetic --out data/synthetic --sessions 40 --minutes 3 --seed 0 [--jobs 2]
 
 Each session is two espeak-ng voices (the agent and the user) taking turns, with overlaps, backchannels
 and barge-ins (gesture/synth/conversation.py), and the agent's procedural whole-body motion
@@ -193,7 +193,7 @@ def generate_dataset(
 
 def main(argv: list[str] | None = None) -> int:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas synthetic", description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output directory (BEAT2 layout)")
     parser.add_argument("--sessions", type=int, default=40)
     parser.add_argument("--minutes", type=float, default=SESSION_MINUTES, help="length of each session")
@@ -217,3 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"{args.out}: {len(ids)} sessions of {args.minutes:g} min")
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
