@@ -16,13 +16,13 @@ from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
 from gesture.eval.realism import body_frame_joints
+from gesture.layers.signal import gate_rms
 from gesture.synth.agent import (
     MICRO_GATE_HZ,
     MICRO_GATE_LOG_STD,
     MICRO_GATE_MAX,
     MICRO_PARTS,
     OWN_GATES,
-    gate_rms,
     micro_gate,
     micro_motion,
     micro_noise,
