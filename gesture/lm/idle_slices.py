@@ -1,4 +1,4 @@
-"""Idle token slices for the runtime's idle gate (MIBURI-FACTS section 5) from tokenized training recordings.
+"""Idle token slices for the runtime's idle gate (`gesture.layers.idle_gate`) from tokenized training recordings.
 
     python -m gesture.lm.idle_slices --data runs/default/lm_data --out ecas/checkpoints/gesture_lm/idle
 

@@ -411,7 +411,7 @@ def synthesize_agent_motion(
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
     gesture_local = (
         local.copy()
-    )  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
+    )  # what the codecs model: the agent's runtime layer adds the rest (gesture.layers.micro_motion)
     for j, offset in offsets.items():
         sign = ELBOW_SIDES.get(j)
         scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]
