@@ -38,12 +38,13 @@ def test_release_config_is_the_moshi_backend_with_the_converted_release():
     assert Path(app.dialogue.moshi.tokenizer).name == "tokenizer_spm_32k_3.model"
     g = app.gesture
     release = Path.cwd() / "checkpoints" / "miburi-release"  # $PWD in the config: the working directory
-    assert (g.lm_checkpoint, g.codec_checkpoints, g.idle.slices_dir) == (
+    assert [spec.name for spec in g.layers] == ["idle"]
+    assert (g.lm_checkpoint, g.codec_checkpoints, g.layers[0].options.slices_dir) == (
         release / "lm",
         release / "codecs",
         release / "idle",
     )
-    assert g.idle.enabled and g.cfg_scale == 1.3 and g.speaker == 3
+    assert g.cfg_scale == 1.3 and g.speaker == 3
     text = CONFIG.read_text()
     assert "CC BY-NC 4.0" in text and "ecas convert-miburi" in text
 
@@ -77,7 +78,7 @@ def _overrides(moshi_dir: Path, out: Path) -> list[str]:
         "dialogue.moshi.device": "cpu",
         "gesture.lm_checkpoint": out / "lm",
         "gesture.codec_checkpoints": out / "codecs",
-        "gesture.idle.slices_dir": out / "idle",
+        "gesture.layers": f"[{{idle: {{slices_dir: {out / 'idle'}}}}}]",
         "gesture.warmup_steps": 1,
     }
     return [f"{key}={value}" for key, value in values.items()]

@@ -141,12 +141,17 @@ def _make_session(job: tuple) -> str:
     return tid
 
 
+SHARED_WITH_LAYERS = ("signal.py", "reflex.py")  # gesture/layers/ files the generator imports
+
+
 def generator_fingerprint() -> str:
-    """SHA-256 of the generator's code and calibration (gesture/synth/*.py and calibration.json): sessions made by
-    another generator are other data."""
+    """SHA-256 of the generator's code and calibration (gesture/synth/*.py, calibration.json, and the signal
+    primitives and posture reflexes it shares with the runtime layers): sessions made by another generator are other
+    data."""
     digest = hashlib.sha256()
     synth = Path(__file__).resolve().parent
-    for path in sorted(synth.glob("*.py")) + [synth / "calibration.json"]:
+    shared = [synth.parent / "layers" / name for name in SHARED_WITH_LAYERS]
+    for path in sorted(synth.glob("*.py")) + [synth / "calibration.json"] + shared:
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()
 
