@@ -220,15 +220,19 @@ class Engine:
         sample_rate_hz: int = SAMPLE_RATE_HZ,
     ) -> list[MotionStep]:
         """Audio as it arrives, any chunk size: returns the steps it completed (none until 1920 samples at 24 kHz
-        are in). `words` are the agent's words with their times, given with or ahead of their audio."""
-        rate = _check_rate(sample_rate_hz, self.state.rate_hz)
+        are in). `words` are the agent's words with their times, given with or ahead of their audio. `user_pcm` (at
+        `sample_rate_hz` too, any length, also alone with an empty `agent_pcm`) is checked; the LM does not use it."""
         pcm = as_mono_float32(agent_pcm, "agent_pcm")
+        rate = _check_rate(sample_rate_hz, self.state.rate_hz if len(pcm) else None)  # user audio alone: any rate
         if user_pcm is not None:
             as_mono_float32(user_pcm, "user_pcm")
         check_words(words)
         self._check_source("audio", "feed")
         self.words.add(words)
-        self.state.source, self.state.rate_hz = "audio", rate
+        self.state.source = "audio"
+        if not len(pcm):
+            return []
+        self.state.rate_hz = rate
         pcm = self._to_24k(pcm, rate)
         out = []
         used = 0

@@ -161,6 +161,8 @@ def test_bad_input_is_a_clear_error_naming_the_argument(engine):
     engine.feed(step[:100], sample_rate_hz=16_000)
     with pytest.raises(ValueError, match="sample_rate_hz: this session is fed at 16000 Hz, got 24000"):
         engine.feed(step)
+    assert engine.feed(step[:0], user_pcm=np.zeros(480, np.int16), sample_rate_hz=48_000) == []  # user audio alone
+    assert engine.state.rate_hz == 16_000 and engine.state.filled == 149  # 100 at 16 kHz: (100 - 1) * 1.5 + 1 out
     with pytest.raises(RuntimeError, match="step_conditioned: this session is driven by audio"):
         engine.step_conditioned(-1, np.zeros(8, np.int64))
     engine.reset()
