@@ -2,6 +2,7 @@
 it moves as the multi-process gesture stage does for the same recording and seed, other rates and int16 work,
 bad input is a clear error, and words and speech move the avatar."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +18,7 @@ from dialogue.speaker import Speaker
 from dialogue.transcript import Transcript
 from dialogue.tts import Utterance, WordTiming
 from ecas.core.audio_file import load_audio
+from ecas.core.config import ConfigError
 from ecas.core.paths import EXAMPLES_DIR
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from gesture.engine import MAX_PENDING_WORDS, Engine, MotionStep, Word, WordTrack
@@ -219,3 +221,18 @@ def test_the_package_exports_the_engine_lazily():
 
     with pytest.raises(AttributeError, match="no attribute 'Motion'"):
         ecas.Motion  # noqa: B018
+
+
+def test_the_packaged_config_is_found_from_any_directory_and_overrides_are_checked(tmp_path):
+    code = (
+        "import numpy as np\n"
+        "from ecas import Engine\n"
+        "with Engine.from_config(overrides=['gesture.speaker=0']) as engine:\n"
+        "    assert engine.step(np.zeros(1920, np.float32)).poses.shape == (2, 55, 3)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, check=True)
+    with pytest.raises(ConfigError, match="gesture.cfg_scal: unknown option"):
+        Engine.from_config(overrides=["gesture.cfg_scal=1.0"])
+    with pytest.raises(ConfigError, match="config file not found"):
+        Engine.from_config(tmp_path / "missing.yaml")
