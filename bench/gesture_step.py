@@ -92,7 +92,7 @@ def time_parts(gens: dict[str, GestureGenerator], steps: int) -> dict:
                 start, start_cpu = time.perf_counter(), time.thread_time()
                 tokens, _ = gen._sample_tokens(text, torch.as_tensor(audio, dtype=torch.long))
                 mid, mid_cpu = time.perf_counter(), time.thread_time()
-                gen.history = tokens
+                gen.state.history.copy_(tokens)
                 gen._decode(tokens)
                 lm_wall[name].append((mid - start) * 1e3)
                 lm_cpu[name].append((mid_cpu - start_cpu) * 1e3)

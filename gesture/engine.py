@@ -42,8 +42,9 @@ from ecas.core.paths import DEFAULT_CONFIG, PACKAGE_DIR
 from ecas.core.spec import ConditionSpec
 from ecas.core.timing import FRAMES_PER_STEP, SAMPLE_RATE_HZ, STEP_S, STEP_SAMPLES
 from gesture.build import build_generator
-from gesture.config import GestureConfig, IdleGateConfig
+from gesture.config import GestureConfig
 from gesture.generator import GestureGenerator
+from gesture.layers.base import SPEAKING_RMS
 
 MAX_PENDING_WORDS = 1024  # words given ahead of their audio wait in a buffer of this size
 INT16_FULL_SCALE = 32768.0
@@ -136,12 +137,11 @@ class Engine:
         generator: GestureGenerator,
         *,
         tokenizer: SpeechTokenizer | None = None,
-        silence_rms: float | None = None,
+        speaking_rms: float = SPEAKING_RMS,
     ) -> None:
         self.generator = generator
         self.encoder = StreamingSpeechEncoder(tokenizer) if tokenizer is not None else None
-        # a step is `speaking` when a frame of its agent audio is louder than this (default: the idle gate's silence)
-        self.silence_rms = _silence_rms(IdleGateConfig()) if silence_rms is None else silence_rms
+        self.speaking_rms = speaking_rms  # a step is `speaking` when a frame of its agent audio is louder (RMS)
         self.words = WordTrack()
         self.state = EngineState()
         self._resampler: StreamResampler | None = None
@@ -181,7 +181,7 @@ class Engine:
         if conditioner:
             path = dialogue.speech_tokenizer
             tokenizer = SpeechTokenizer.load(_packaged(Path(path)) if path else DEFAULT_CHECKPOINT)
-        engine = cls(build_generator(gesture, seed), tokenizer=tokenizer, silence_rms=_silence_rms(gesture.idle))
+        engine = cls(build_generator(gesture, seed), tokenizer=tokenizer, speaking_rms=gesture.speaking_rms)
         engine.warm_up(gesture.warmup_steps)
         return engine
 
@@ -323,7 +323,7 @@ class Engine:
 
     def _loud(self, pcm: np.ndarray) -> bool:
         frames = pcm.reshape(FRAMES_PER_STEP, -1)  # (2, 960): the step's two motion frames
-        return bool(np.sqrt(np.mean(np.square(frames, dtype=np.float64), axis=1)).max() > self.silence_rms)
+        return bool(np.sqrt(np.mean(np.square(frames, dtype=np.float64), axis=1)).max() > self.speaking_rms)
 
     def _audio_step(self) -> MotionStep:
         pcm = self.state.agent
@@ -391,11 +391,6 @@ def check_words(words: Sequence[Word]) -> list[tuple[int, int]]:
     return out
 
 
-def _silence_rms(idle: IdleGateConfig) -> float:
-    """The idle gate's silence (an L2 norm over its window) as the RMS of a sample."""
-    return idle.l2_threshold / math.sqrt(idle.window_samples)
-
-
 def _ratio(rate: int) -> tuple[int, int]:
     g = math.gcd(rate, SAMPLE_RATE_HZ)
     return SAMPLE_RATE_HZ // g, rate // g
@@ -417,12 +412,8 @@ def _packaged(path: Path) -> Path:
 
 def _packaged_paths(cfg: GestureConfig) -> GestureConfig:
     paths = {
-        key: _packaged(Path(getattr(cfg, key)))
-        for key in ("lm_checkpoint", "codec_checkpoints")
-        if getattr(cfg, key) is not None
+        key: _packaged(Path(getattr(cfg, key))) for key in ("lm_checkpoint", "codec_checkpoints") if getattr(cfg, key)
     }
-    if cfg.idle.slices_dir is not None:
-        paths["idle"] = dataclasses.replace(cfg.idle, slices_dir=_packaged(Path(cfg.idle.slices_dir)))
     return dataclasses.replace(cfg, **paths)
 
 

@@ -23,14 +23,7 @@ import numpy as np
 from ecas.core.component import RunContext
 from ecas.core.messages import DialogueStep, GestureStep, Message
 from ecas.core.timing import MOTION_FPS
-from gesture.build import (  # noqa: F401 (re-exported: the builders' old home)
-    build_alternation_filter,
-    build_face_layer,
-    build_foot_lock,
-    build_generator,
-    build_micro_motion,
-    build_stabilizer,
-)
+from gesture.build import build_generator  # noqa: F401 (re-exported: its old home)
 from gesture.config import GestureConfig
 from gesture.engine import Engine, MotionStep
 

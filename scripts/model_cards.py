@@ -143,7 +143,7 @@ filters, 2/2/1 transformer layers, AdamW lr {CODEC["lr"]:g}, batch {CODEC["batch
 The synthetic sessions are read as their gesture layer (`gesture_poses`): the motion without the small,
 speech-independent micro-motion of the spine, neck, head, collars and wrists, which codecs of this size do not carry
 (a linear probe of an upper latent trained on the whole motion explained none of it). The default agent adds that
-micro-motion after decoding with its micro-motion layer (`gesture.micro_motion`, `ecas/configs/default.yaml`), from the
+micro-motion after decoding with its micro-motion layer (`gesture.layers.micro_motion`, `ecas/configs/default.yaml`), from the
 same fitted model the generator uses.
 
 ## Metrics

@@ -26,7 +26,7 @@ COMMANDS = (
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("ecas.core",),  # timing, body constants, spec, messages, bus, config loader, component contract
     ("gesture.nn", "gesture.body"),  # network blocks and step weights; body maths
-    ("dialogue", "gesture.data"),  # the dialogue system; reading and chunking motion data
+    ("dialogue", "gesture.data", "gesture.layers"),  # the dialogue system; reading motion data; the runtime layers
     ("render", "gesture.synth", "gesture.codec"),  # the avatar; synthetic conversations; the motion codecs
     ("gesture.lm",),  # the gesture LM, its tokenized data and its fast step
     ("gesture",),  # the gesture runtime: generator, stage component, `gesture:` section

@@ -36,12 +36,13 @@ def test_release_config_is_the_moshi_backend_with_the_converted_release():
     assert Path(app.dialogue.moshi.mimi_weights).name == "tokenizer-e351c8d8-checkpoint125.safetensors"
     assert Path(app.dialogue.moshi.tokenizer).name == "tokenizer_spm_32k_3.model"
     g = app.gesture
-    assert (g.lm_checkpoint, g.codec_checkpoints, g.idle.slices_dir) == (
+    assert [spec.name for spec in g.layers] == ["idle"]
+    assert (g.lm_checkpoint, g.codec_checkpoints, g.layers[0].options.slices_dir) == (
         Path("checkpoints/miburi-release/lm"),
         Path("checkpoints/miburi-release/codecs"),
         Path("checkpoints/miburi-release/idle"),
     )
-    assert g.idle.enabled and g.cfg_scale == 1.3 and g.speaker == 3
+    assert g.cfg_scale == 1.3 and g.speaker == 3
     text = CONFIG.read_text()
     assert "CC BY-NC 4.0" in text and "python -m gesture.convert_miburi" in text
 
@@ -83,7 +84,7 @@ def _overrides(moshi_dir: Path, out: Path) -> list[str]:
         "dialogue.moshi.device": "cpu",
         "gesture.lm_checkpoint": out / "lm",
         "gesture.codec_checkpoints": out / "codecs",
-        "gesture.idle.slices_dir": out / "idle",
+        "gesture.layers": f"[{{idle: {{slices_dir: {out / 'idle'}}}}}]",
         "gesture.warmup_steps": 1,
     }
     return [f"{key}={value}" for key, value in values.items()]

@@ -109,7 +109,5 @@ def test_gesture_config_validates_options():
         GestureConfig(hold_bias=-1.0)
     with pytest.raises(ConfigError, match="gesture.hold_levels"):
         GestureConfig(hold_levels=(-1,))
-    with pytest.raises(ConfigError, match="gesture.idle.slices_dir"):
-        from gesture.config import IdleGateConfig
-
-        IdleGateConfig(enabled=True)
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].idle.slices_dir: required"):
+        GestureConfig(layers=[{"idle": {}}])

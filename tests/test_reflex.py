@@ -1,10 +1,10 @@
-"""Posture reflexes (gesture.synth.reflex): the chest and head counter quick turns beneath them, causally."""
+"""Posture reflexes (gesture.layers.reflex): the chest and head counter quick turns beneath them, causally."""
 
 import numpy as np
 
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.eval.realism import WORLD_PARTS, world_rotations
-from gesture.synth.reflex import CHEST, HEAD, PostureReflexes, Reflex, chain_world
+from gesture.layers.reflex import CHEST, HEAD, PostureReflexes, Reflex, chain_world
 
 FPS = 25.0
 

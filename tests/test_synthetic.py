@@ -11,18 +11,18 @@ from ecas.core.config import ConfigError
 from gesture.body.regions import contacts_from_motion
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
-from gesture.config import MicroMotionConfig
 from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
 from gesture.eval.realism import body_frame_joints
+from gesture.layers.micro_motion import MicroMotionOptions
+from gesture.layers.signal import gate_rms
 from gesture.synth.agent import (
     MICRO_GATE_HZ,
     MICRO_GATE_LOG_STD,
     MICRO_GATE_MAX,
     MICRO_PARTS,
     OWN_GATES,
-    gate_rms,
     micro_gate,
     micro_motion,
     micro_noise,
@@ -127,7 +127,7 @@ def test_gesture_layer_leaves_out_only_the_runtime_layers_micro_motion(dataset, 
     layer = session["gesture_poses"].reshape(-1, 55, 3)
     moved = np.abs(session["poses"] - layer).max(axis=(0, 2))  # (55,)
     assert set(np.flatnonzero(moved > 1e-3)) == set(LAYERED_MICRO_JOINTS)
-    assert set(LAYERED_MICRO_JOINTS) == set(MicroMotionConfig().joints)
+    assert set(LAYERED_MICRO_JOINTS) == set(MicroMotionOptions().joints)
     take = find_takes(dataset[0])[0]
     assert np.array_equal(read_motion(take.motion_path, gesture_layer=True).poses, layer)
     assert np.array_equal(read_motion(take.motion_path).poses, session["poses"])

@@ -9,8 +9,7 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 ``--motion`` reuses one) and compared with the real motion of that clip. Two references are measured the same
 way, so the report is seen to discriminate:
 
-- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.alternation_filter``,
-  ``gesture.micro_motion``, ``gesture.face``, ``gesture.foot_lock`` and ``gesture.stabilizer`` off): what its LM and
+- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.layers=[]``): what its LM and
   codecs alone carry; not measured with ``--motion``;
 - ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
@@ -37,7 +36,7 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - per joint group, the share of its angular velocity's power at ``FAST_BAND_HZ`` (``spectra``: how much of its
   motion is quick small movement rather than slow drift; the real speaker's spine has about a third there);
 - the chest and the head in space (``world``, ``WORLD_PARTS``): the angular speed and acceleration of their world
-  rotations. A speaker's spine and neck counter the turns beneath them (gesture.synth.reflex), so his head moves more
+  rotations. A speaker's spine and neck counter the turns beneath them (gesture.layers.reflex), so his head moves more
   steadily in space than its joints' local speeds suggest.
 
 Every scalar is also given as a ratio to the real clip's. ``--out`` gets ``realism.json``, ``speeds.png`` (the
@@ -90,8 +89,7 @@ JOINT_GROUPS = {
     "neck_head": NECK_HEAD,
     "spine": (3, 6, 9),
 }
-# the config sections of the layers after decoding
-RUNTIME_LAYERS = ("alternation_filter", "micro_motion", "face", "foot_lock", "stabilizer")
+WITHOUT_LAYERS = "gesture.layers=[]"  # the agent's LM and codecs alone: an empty list of runtime layers
 GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four ...
 GROUP_GOAL_RANGE = (0.67, 1.5)  # ... and this range for every ratio of theirs
 STILL_RAD_S = 0.2
@@ -206,7 +204,7 @@ def fast_power_shares(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
 
 def world_rotations(poses: np.ndarray, chain: Sequence[int]) -> np.ndarray:
     """(T, J, 3) axis-angle -> (T, 3, 3): the world rotation of the last joint of ``chain`` (from the root down)."""
-    from gesture.synth.reflex import chain_world
+    from gesture.layers.reflex import chain_world
 
     local = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
     return chain_world(local, np.broadcast_to(np.eye(3), local[:, 0].shape), tuple(chain))
@@ -703,7 +701,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 args.seed,
                 out / "agent_codecs_only",
                 config,
-                args.set + [f"gesture.{layer}.enabled=false" for layer in RUNTIME_LAYERS],
+                args.set + [WITHOUT_LAYERS],
             )
             motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
         motions |= {

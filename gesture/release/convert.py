@@ -38,7 +38,7 @@ from ecas.core.timing import STEP_SAMPLES
 from gesture.body.regions import REGION_DIMS
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
-from gesture.config import GestureConfig, IdleGateConfig
+from gesture.config import GestureConfig
 from gesture.lm.checkpoint import save_lm
 from gesture.release.codecs import (
     FIRST_CONV,
@@ -221,7 +221,7 @@ def release_gesture_config(out: Path, speaker: int, **overrides) -> GestureConfi
         lm_checkpoint=out / LM_DIR,
         codec_checkpoints=out / CODECS_DIR,
         speaker=speaker,
-        idle=IdleGateConfig(enabled=True, slices_dir=out / IDLE_DIR),
+        layers=({"idle": {"slices_dir": out / IDLE_DIR}},),
         **overrides,
     )
 

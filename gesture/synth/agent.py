@@ -21,11 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
-from scipy.special import ndtr
 
 from ecas.core.body import COLLARS, ELBOWS, NUM_JOINTS, WRISTS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
 from gesture.body.skeleton import Skeleton, forward_kinematics
+from gesture.layers.reflex import PostureReflexes
+from gesture.layers.signal import log_normal_gate
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig
 from gesture.synth.conversation import AGENT, MIN_PAUSE_S, USER, Conversation, activity_frames
@@ -34,7 +35,6 @@ from gesture.synth.gestures import ArmTracks, plan_arms
 from gesture.synth.hands import blend_hands
 from gesture.synth.ik import TwoBoneChain
 from gesture.synth.posture import Posture, highest_pelvis, plan_posture
-from gesture.synth.reflex import PostureReflexes
 from gesture.synth.tracks import KeyTrack, add_bump, lowpass_noise, smooth_noise
 
 LISTENING_ENERGY = 0.55  # relative liveliness while listening (1 while speaking)
@@ -219,17 +219,10 @@ def plan_face(
     )
 
 
-def gate_rms(log_std: np.ndarray | float, cap: float) -> np.ndarray:
-    """The RMS of min(exp(s Z - s^2), cap) for a standard normal Z and log std s."""
-    z_cap = (np.log(cap) + np.square(log_std)) / log_std
-    return np.sqrt(ndtr(z_cap - 2 * np.asarray(log_std)) + cap**2 * ndtr(-z_cap))
-
-
 def micro_gate(noise: np.ndarray, log_std: float = MICRO_GATE_LOG_STD) -> np.ndarray:
     """Smooth unit-variance noise -> the gate: log-normal, capped, and scaled to the RMS of the gate of
     ``MICRO_GATE_LOG_STD`` (so the fitted stds of calibration.json keep their size under a burstier gate)."""
-    gain = gate_rms(MICRO_GATE_LOG_STD, MICRO_GATE_MAX) / gate_rms(log_std, MICRO_GATE_MAX)
-    return np.minimum(np.exp(log_std * noise - log_std**2), MICRO_GATE_MAX) * gain
+    return log_normal_gate(noise, log_std, MICRO_GATE_MAX, MICRO_GATE_LOG_STD)
 
 
 def micro_motion_scale(speaking: np.ndarray, env: np.ndarray, fps: float) -> np.ndarray:
@@ -418,7 +411,7 @@ def synthesize_agent_motion(
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
     gesture_local = (
         local.copy()
-    )  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
+    )  # what the codecs model: the agent's runtime layer adds the rest (gesture.layers.micro_motion)
     for j, offset in offsets.items():
         sign = ELBOW_SIDES.get(j)
         scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]
