@@ -34,7 +34,7 @@ from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
 from ecas.core.bus import Publisher, Subscriber, stage_address
 from ecas.core.component import RunContext
-from ecas.core.messages import Command, Control, Log, Metrics
+from ecas.core.messages import Command, Control, Kind, Log, Metrics
 from ecas.core.timing import STEP_MS
 
 log = logging.getLogger("supervisor")
@@ -87,7 +87,7 @@ class Supervisor:
             self._wait_ready()
             self._sync_clocks()
             self._wait_for_start()
-            self._send(Command.START)
+            self._send(Command.START, {"clock_offsets_ns": self.clock.offsets_ns()})
             self.started_s = time.monotonic()
             log.info(
                 "started: %s (bus: %s)",
@@ -123,7 +123,9 @@ class Supervisor:
         addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
         self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
         addresses += [self.dashboard.address] if self.dashboard else []
-        self.sub = Subscriber(ctx, addresses, ["control", "metrics", "log"], live_queue=None)
+        self.sub = Subscriber(
+            ctx, addresses, [k.value for k in (Kind.CONTROL, Kind.METRICS, Kind.LOG)], live_queue=None
+        )
 
     def _on_signal(self, signum, _frame) -> None:
         self.interrupted = True

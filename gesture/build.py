@@ -18,7 +18,7 @@ from gesture.nn.weights import UnsupportedFormError, require_fast_form
 def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
     """The generator of a `gesture:` section: checkpoints, spec check, sampling options, runtime layers."""
     if cfg.lm_checkpoint is None:
-        raise ConfigError("gesture.lm_checkpoint: required (a directory written by python -m gesture.train_lm)")
+        raise ConfigError("gesture.lm_checkpoint: required (a directory written by ecas train-lm)")
     if cfg.codec_checkpoints is None:
         raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
     try:

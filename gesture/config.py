@@ -19,7 +19,7 @@ from gesture.layers.registry import parse_layers
 class GestureConfig:
     """The `gesture:` section: checkpoints, sampling, classifier-free guidance, speaker, runtime layers."""
 
-    lm_checkpoint: Path | None = None  # a directory written by `python -m gesture.train_lm`
+    lm_checkpoint: Path | None = None  # a directory written by `ecas train-lm`
     codec_checkpoints: Path | None = None  # a directory holding the three codecs (upper, lower, face)
     temperature: float = 0.9
     top_p_temporal: float = 0.8

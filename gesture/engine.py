@@ -37,8 +37,8 @@ from dialogue.config import DialogueConfig
 from dialogue.resample import StreamResampler
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, StreamingSpeechEncoder
 from dialogue.text_vocab import LOCAL_SPEC, word_token
-from ecas.core.config import apply_override, build_dataclass, load_yaml, parse_override
-from ecas.core.paths import DEFAULT_CONFIG, PACKAGE_DIR
+from ecas.core.config import apply_override, build_dataclass, config_path, load_yaml, parse_override
+from ecas.core.paths import DEFAULT_CONFIG
 from ecas.core.spec import ConditionSpec
 from ecas.core.timing import FRAMES_PER_STEP, SAMPLE_RATE_HZ, STEP_S, STEP_SAMPLES
 from gesture.build import build_generator
@@ -149,9 +149,10 @@ class Engine:
 
     @classmethod
     def from_config(cls, config: str | Path | None = None, overrides: Sequence[str] = (), seed: int = 0) -> Engine:
-        """The engine of a YAML config (None: the packaged default), with `section.key=value` overrides as `--set`
-        gives them: its `gesture:` section and its `dialogue:` section's speech tokenizer, as the agent runs them."""
-        tree = load_yaml(Path(config) if config is not None else DEFAULT_CONFIG)
+        """The engine of a YAML config (a file, or a packaged config's name as `--config` takes it; None: the packaged
+        default) with `section.key=value` overrides as `--set` gives them: its `gesture:` section and its `dialogue:`
+        section's speech tokenizer, as the agent runs them."""
+        tree = load_yaml(config_path(config) if config is not None else DEFAULT_CONFIG)
         for text in overrides:
             apply_override(tree, *parse_override(text))
         gesture = build_dataclass(GestureConfig, tree.get("gesture"), "gesture")
@@ -176,11 +177,10 @@ class Engine:
         conditioner = conditioner and spec == LOCAL_SPEC
         if gesture.dialogue_spec is None and conditioner:
             gesture = dataclasses.replace(gesture, dialogue_spec=spec)
-        gesture = _packaged_paths(gesture)
         tokenizer = None
         if conditioner:
             path = dialogue.speech_tokenizer
-            tokenizer = SpeechTokenizer.load(_packaged(Path(path)) if path else DEFAULT_CHECKPOINT)
+            tokenizer = SpeechTokenizer.load(Path(path) if path else DEFAULT_CHECKPOINT)
         engine = cls(build_generator(gesture, seed), tokenizer=tokenizer, speaking_rms=gesture.speaking_rms)
         engine.warm_up(gesture.warmup_steps)
         return engine
@@ -400,21 +400,6 @@ def _frozen(array, dtype) -> np.ndarray:
     out = np.array(array, dtype)  # a copy: later steps never touch it
     out.flags.writeable = False
     return out
-
-
-def _packaged(path: Path) -> Path:
-    """A relative path that is not found from the working directory is taken from beside the installed package."""
-    if path.is_absolute() or path.exists():
-        return path
-    beside = PACKAGE_DIR.parent / path
-    return beside if beside.exists() else path
-
-
-def _packaged_paths(cfg: GestureConfig) -> GestureConfig:
-    paths = {
-        key: _packaged(Path(getattr(cfg, key))) for key in ("lm_checkpoint", "codec_checkpoints") if getattr(cfg, key)
-    }
-    return dataclasses.replace(cfg, **paths)
 
 
 __all__ = ["Engine", "EngineState", "MotionStep", "Word", "WordTrack", "as_mono_float32"]

@@ -5,9 +5,8 @@ which checks the LM's condition spec against the dialogue backend's (`gesture.di
 launcher) and warms up. The component drives it with the dialogue stage's codes; a new session resets it.
 `close()` writes `gesture.json` (step count and step-time percentiles) and, in offline runs, `motion.npz`: every
 generated step in BEAT2's layout (poses (2T, 165), trans (2T, 3), expressions (2T, 100), mocap_frame_rate 25) plus
-tokens (T, 20) and va_prob (T,), so `python -m render.play`, `python -m gesture.evaluate --motion` and the data
-tools read it like a BEAT2 take. Live runs keep no record:
-nothing in a live session grows with time.
+tokens (T, 20) and va_prob (T,), so `python -m render.play`, `ecas evaluate --motion` and the data tools read it
+like a BEAT2 take. Live runs keep no record: nothing in a live session grows with time.
 """
 
 from __future__ import annotations

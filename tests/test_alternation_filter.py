@@ -11,7 +11,7 @@ from gesture.eval.realism import angular_speeds
 from gesture.generator import GestureGenerator
 from gesture.layers import build_layer
 from gesture.layers.alternation_filter import TORSO_AND_LEG_JOINTS, AlternationFilter
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 JOINTS = TORSO_AND_LEG_JOINTS
 

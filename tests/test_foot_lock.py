@@ -12,7 +12,7 @@ from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.generator import GestureGenerator
 from gesture.layers import StepContext, build_layer
 from gesture.layers.foot_lock import LEGS, FootLock
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 SKELETON = Skeleton.default()

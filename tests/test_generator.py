@@ -8,8 +8,8 @@ from gesture.body.regions import LOWER_VELOCITY_SLICE
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.generator import GestureGenerator
 from gesture.layers.idle_gate import IdleGate
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from tests.kernels import KERNELS, using
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 

@@ -22,6 +22,7 @@ def fits_from_synth() -> dict:
     """The values the layers use, as the data generator (gesture.synth) defines and fits them."""
     from gesture.synth import agent, face
     from gesture.synth.calibration import MICRO_FAST_HZ, load_calibration
+    from gesture.synth.config import LAYERED_MICRO_JOINTS
 
     noise = load_calibration().micro_motion
     return {
@@ -30,6 +31,7 @@ def fits_from_synth() -> dict:
                 str(j): {"std_rad": [float(x) for x in m.std_rad], "cutoff_hz": m.cutoff_hz, "fast_ratio": m.fast_ratio}
                 for j, m in sorted(noise.items())
             },
+            "layered_joints": list(LAYERED_MICRO_JOINTS),
             "fast_hz": MICRO_FAST_HZ,
             "listening_scale": agent.MICRO_LISTENING,
             "envelope_gain": agent.MICRO_ENVELOPE_GAIN,
@@ -78,6 +80,17 @@ def test_no_layer_imports_the_data_generator():
     layers = {m: imported for m, imported in graph.items() if m.startswith("gesture.layers")}
     assert len(layers) >= 8
     assert not {m: sorted(i) for m, i in layers.items() if any(x.startswith("gesture.synth") for x in i)}
+
+
+def test_the_data_fingerprint_covers_the_layer_files_the_data_generator_imports():
+    from gesture.synth.build import SHARED_WITH_LAYERS
+    from tests.architecture import import_graph
+    from tests.test_architecture import REPO
+
+    graph = import_graph(REPO)
+    used = {i for m, imported in graph.items() if m.startswith("gesture.synth") for i in imported}
+    shared = {name.split(".")[-1] + ".py" for name in used if name.startswith("gesture.layers.")}
+    assert shared and shared <= set(SHARED_WITH_LAYERS)
 
 
 def main(argv=None) -> int:

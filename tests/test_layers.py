@@ -14,6 +14,7 @@ from agent.sections import load_app_config
 from ecas.core.config import ConfigError, apply_override, parse_override
 from ecas.core.paths import DEFAULT_CONFIG
 from gesture.config import GestureConfig
+from gesture.eval.realism import WITHOUT_LAYERS
 from gesture.generator import GestureGenerator, level_slices
 from gesture.layers import (
     LayerEnv,
@@ -28,7 +29,7 @@ from gesture.layers import (
     register,
 )
 from gesture.layers.base import SPEAKING_RMS
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 SHIPPED = ["alternation_filter", "foot_lock", "stabilizer", "micro_motion", "face"]
@@ -75,7 +76,7 @@ def test_the_list_is_validated_with_errors_that_name_the_option():
 
 def test_an_override_replaces_the_list_and_an_empty_list_has_no_layers():
     tree = {"gesture": {"layers": [{"face": {}}]}}
-    apply_override(tree, *parse_override("gesture.layers=[]"))
+    apply_override(tree, *parse_override(WITHOUT_LAYERS))  # the realism report's agent without its layers
     assert GestureConfig(**tree["gesture"]).layers == ()
     apply_override(tree, *parse_override("gesture.layers=[{face: {brow_cutoff_hz: 1.0}}, foot_lock]"))
     specs = GestureConfig(**tree["gesture"]).layers

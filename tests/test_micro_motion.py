@@ -23,11 +23,11 @@ from gesture.layers.micro_motion import (
     calibrated_micro_motion,
 )
 from gesture.layers.signal import lowpass_sos
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
 from gesture.synth import agent
 from gesture.synth.agent import MICRO_ENVELOPE_GAIN, micro_motion
 from gesture.synth.calibration import load_calibration
 from gesture.synth.tracks import lowpass_noise, smooth_noise
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)

@@ -12,7 +12,7 @@ from gesture.eval.realism import STILL_RAD_S, angular_speeds
 from gesture.generator import GestureGenerator
 from gesture.layers import build_layer
 from gesture.layers.stabilizer import ArmStabilizer
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 ARMS = (18, 19, 20, 21)

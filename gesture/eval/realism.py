@@ -1,6 +1,6 @@
 """Realism report: motion generated for real speech against the real speaker's motion on that speech.
 
-    python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
+    ecas realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
         [--config YAML] [--set KEY=VALUE ...]   (passed to launch.py, e.g. a candidate agent or other checkpoints)
         [--clip PATH/TAKE [--wav WAV]]   (another real take: TAKE.npz, and its speech TAKE.wav or WAV)
 
@@ -60,9 +60,9 @@ import torch
 from scipy.ndimage import binary_closing, gaussian_filter1d, label, median_filter
 from scipy.signal import find_peaks
 
-from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, WRISTS
+from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, SPINE, WRISTS
 from ecas.core.errors import DataError
-from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.paths import CHECKPOINTS_DIR, DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
@@ -75,9 +75,8 @@ from gesture.body.rotation import (
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.eval import metrics as M
 
-ROOT = Path(__file__).resolve().parents[2]
 SHARED_BEAT2 = data_root() / "beat2"
-REAL_CLIP = SHARED_BEAT2 / "2_scott_0_1_1"
+REAL_CLIP = real_clip()
 MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
 DEFAULT_APP_CONFIG = DEFAULT_CONFIG
 
@@ -87,14 +86,14 @@ JOINT_GROUPS = {
     "shoulders": SHOULDERS,
     "collars": COLLARS,
     "neck_head": NECK_HEAD,
-    "spine": (3, 6, 9),
+    "spine": SPINE,
 }
 WITHOUT_LAYERS = "gesture.layers=[]"  # the agent's LM and codecs alone: an empty list of runtime layers
-GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four ...
+GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # the realism goals name these four ...
 GROUP_GOAL_RANGE = (0.67, 1.5)  # ... and this range for every ratio of theirs
 STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)
-WORLD_PARTS = {"chest": (0, 3, 6, 9), "head": (0, 3, 6, 9, 12, 15)}  # root-to-part chains measured in space
+WORLD_PARTS = {"chest": (PELVIS, *SPINE), "head": (PELVIS, *SPINE, *NECK_HEAD)}  # root-to-part chains measured in space
 EDGE_S = 2.0
 PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
 STEP_MPS, STEP_MIN_M, STEP_SMOOTH_FRAMES = 0.1, 0.03, 1.0  # a step: an ankle faster than this, ending this far away
@@ -287,7 +286,8 @@ def step_count(ankle_xz: np.ndarray, fps: float = MOTION_FPS) -> int:
 
 def feet_stats(poses: np.ndarray, trans: np.ndarray, skeleton: Skeleton, fps: float = MOTION_FPS) -> dict:
     """The ankles' horizontal speed in the world (m/s): the fraction of frames they are planted, and its 90th
-    percentile (steps); steps per minute per ankle; how far the pelvis gets over the floor in one second (median, m/s)."""
+    percentile (steps); steps per minute per ankle; how far the pelvis gets over the floor in one second (median,
+    m/s)."""
     joints, _ = forward_kinematics_np(skeleton, np.asarray(poses, np.float32), np.asarray(trans, np.float32))
     floor = joints[..., [0, 2]]  # (T, J, 2)
     speed = np.linalg.norm(np.diff(floor[:, list(ANKLES)], axis=0), axis=-1).reshape(-1) * fps
@@ -456,7 +456,8 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
     report_dir.mkdir(parents=True, exist_ok=True)
     cmd = [
         sys.executable,
-        str(ROOT / "launch.py"),
+        "-m",
+        "ecas.launch",
         "--config",
         str(config),
         "--speak",
@@ -468,12 +469,12 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
         str(report_dir),
     ] + [arg for item in overrides for arg in ("--set", item)]
     with open(report_dir / "launch.out", "w") as log:
-        subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
+        subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=True)
     return report_dir / "motion.npz"
 
 
 def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
-    """The codec directory of the app ``config`` with launch.py ``--set`` ``overrides`` (relative to the repository)."""
+    """The codec directory of the app ``config`` with ``--set`` ``overrides``."""
     from ecas.core.config import apply_override, build_dataclass, load_yaml, parse_override
     from gesture.config import GestureConfig
 
@@ -481,7 +482,7 @@ def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
     for text in overrides:
         apply_override(tree, *parse_override(text))
     codecs = build_dataclass(GestureConfig, tree.get("gesture"), "gesture").codec_checkpoints
-    return ROOT / (codecs if codecs is not None else "ecas/checkpoints/codecs")
+    return codecs if codecs is not None else CHECKPOINTS_DIR / "codecs"
 
 
 def halves(clip: M.MotionClip) -> tuple[M.MotionClip, M.MotionClip]:
@@ -645,7 +646,7 @@ def format_table(report: dict) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m gesture.realism", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas realism", description=__doc__.splitlines()[0])
     p.add_argument(
         "--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline"
     )
@@ -672,7 +673,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     args = p.parse_args(argv)
-    out = Path(args.out) if args.out else ROOT / "runs" / f"realism_seed{args.seed}"
+    out = Path(args.out) if args.out else Path("runs") / f"realism_seed{args.seed}"
     real_npz, wav = Path(args.clip + ".npz"), Path(args.wav or args.clip + ".wav")
     try:
         given = tuple(Path(x) for x in (args.motion, args.synthetic) if x)
@@ -728,3 +729,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     (out / "realism.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report) if args.json else format_table(report))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -33,6 +33,7 @@ class MicroNoise:
 @dataclass(frozen=True)
 class MicroFit:
     joints: dict[int, MicroNoise]  # every joint with a fitted micro-motion
+    layered_joints: tuple[int, ...]  # the joints whose micro-motion the data leaves out of what the codecs learn
     fast_hz: float  # the corner of every joint's quick noise
     listening_scale: float  # the micro-motion's size while the agent listens, relative to speaking
     envelope_gain: float  # the size is 1 - gain/2 .. 1 + gain/2 with the smoothed speech envelope
@@ -77,6 +78,7 @@ def micro_fit() -> MicroFit:
             int(j): MicroNoise(np.asarray(m["std_rad"], np.float64), m["cutoff_hz"], m["fast_ratio"])
             for j, m in doc["joints"].items()
         },
+        layered_joints=tuple(doc["layered_joints"]),
         fast_hz=doc["fast_hz"],
         listening_scale=doc["listening_scale"],
         envelope_gain=doc["envelope_gain"],

@@ -20,7 +20,7 @@ docs/quality_history.md, "Runtime layers".
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from dataclasses import replace as replace_fields
 
 import numpy as np
@@ -42,7 +42,6 @@ from gesture.layers.signal import (
 
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
 LIMIT_STDS = 2.5  # each offset is softly limited (tanh) to this many fitted stds per axis: no wrist folds over
-LAYERED_JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)  # spine, neck, collars, head, wrists: left out of the data's poses
 VOICED_RMS = 1e-3  # frames above it count towards the envelope's loud level (as the data's speech envelope)
 LOUD_QUANTILE = 0.95  # the envelope divides by this quantile of the voiced frames' RMS ...
 LOUD_RATE = 0.02  # ... tracked causally: it moves by about this fraction per voiced frame
@@ -52,7 +51,8 @@ HEAD_DRIFT_STREAM = 1  # the drift's random stream, apart from the layer's: the 
 
 @dataclass(frozen=True)
 class MicroMotionOptions:
-    joints: tuple[int, ...] = LAYERED_JOINTS  # the joints moved (each must have a fitted micro-motion)
+    # the joints moved (each must have a fitted micro-motion); by default those the data leaves to this layer
+    joints: tuple[int, ...] = field(default_factory=lambda: micro_fit().layered_joints)
     scale: float = 1.0  # times every fitted standard deviation
     head_drift_rad: float = 0.0  # the neck's and head's slow drift: its std per axis (0: none) ...
     head_drift_hz: float = 0.17  # ... and its cutoff

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
-from ecas.core.body import NECK_HEAD
+from ecas.core.body import NECK_HEAD, SPINE
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 
 PELVIS = 0
@@ -33,7 +33,7 @@ class Reflex:
     course_hz: float
 
 
-CHEST = Reflex(joints=(3, 6, 9), share=0.7, course_hz=1.0)  # spine1-3 under the chest (spine3)
+CHEST = Reflex(joints=SPINE, share=0.7, course_hz=1.0)  # spine1-3 under the chest (spine3)
 HEAD = Reflex(joints=NECK_HEAD, share=0.5, course_hz=0.5)  # neck and head, above the chest
 REFLEXES = (CHEST, HEAD)  # in this order: the head's parent is the chest after its reflex
 

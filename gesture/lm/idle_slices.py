@@ -54,7 +54,7 @@ def write_idle_slices(out: Path, tokens: np.ndarray, n_upper: int, n_lower: int)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas idle-slices", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="directory of tokenized recordings (*.npz)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the two slice files")
     parser.add_argument("--trim-steps", type=int, default=4, help="steps dropped at each end of the stretch")
