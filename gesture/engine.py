@@ -14,7 +14,8 @@ Each step runs what the agent runs: the local dialogue backend's conditioner, th
   the codes the local and playback backends send to the gesture stage).
 - Words with times become one text token per step, placed as the dialogue's speaker places them (`WordTrack`).
 - The generator of `gesture.build.build_generator` turns (text token, codes, the step's audio) into 20 gesture
-  tokens, decodes two frames and runs the runtime layers.
+  tokens, decodes two frames and runs the runtime layers; the face is also given as ARKit-52 weights
+  (`render.arkit`).
 Audio at another rate is resampled causally to 24 kHz (`dialogue.resample.StreamResampler`), so the chunk sizes
 never change the result. A session fed by a stage with a conditioner of its own (Moshi, the dialogue stage) calls
 `step_conditioned` with that stage's text token and codes instead. The user's audio is checked and accepted, but
@@ -37,6 +38,7 @@ from dialogue.config import DialogueConfig
 from dialogue.resample import StreamResampler
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, StreamingSpeechEncoder
 from dialogue.text_vocab import LOCAL_SPEC, word_token
+from ecas.core.body import JAW_JOINT
 from ecas.core.config import apply_override, build_dataclass, config_path, load_yaml, parse_override
 from ecas.core.paths import DEFAULT_CONFIG
 from ecas.core.spec import ConditionSpec
@@ -45,6 +47,7 @@ from gesture.build import build_generator
 from gesture.config import GestureConfig
 from gesture.generator import GestureGenerator
 from gesture.layers.base import SPEAKING_RMS
+from render.arkit import arkit_weights
 
 MAX_PENDING_WORDS = 1024  # words given ahead of their audio wait in a buffer of this size
 INT16_FULL_SCALE = 32768.0
@@ -72,6 +75,7 @@ class MotionStep:
     text_token: int = field(default=-1, kw_only=True)  # the step's text token (-1: none)
     tokens: np.ndarray | None = field(default=None, kw_only=True)  # (20,) int32 gesture tokens (LM level order)
     va_prob: float = field(default=math.nan, kw_only=True)  # the LM's voice-activity head (NaN without one)
+    arkit: np.ndarray | None = field(default=None, kw_only=True)  # (2, 52) float32 ARKit weights in [0, 1]
 
 
 @dataclass
@@ -345,6 +349,7 @@ class Engine:
             text_token=text_token,
             tokens=_frozen(out.tokens, np.int32),
             va_prob=float(out.va_prob),
+            arkit=_frozen(arkit_weights(out.expressions, out.poses[:, JAW_JOINT]), np.float32),  # (2, 52)
         )
 
 

@@ -18,10 +18,12 @@ from dialogue.speaker import Speaker
 from dialogue.transcript import Transcript
 from dialogue.tts import Utterance, WordTiming
 from ecas.core.audio_file import load_audio
+from ecas.core.body import JAW_JOINT
 from ecas.core.config import ConfigError
 from ecas.core.paths import EXAMPLES_DIR
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from gesture.engine import MAX_PENDING_WORDS, Engine, MotionStep, Word, WordTrack
+from render.arkit import ARKIT_NAMES, arkit_weights
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
@@ -61,7 +63,7 @@ def assert_same_motion(a: list[MotionStep], b: list[MotionStep]) -> None:
     assert len(a) == len(b)
     for x, y in zip(a, b):
         assert (x.step, x.t_audio_s, x.speaking, x.text_token) == (y.step, y.t_audio_s, y.speaking, y.text_token)
-        for name in ("poses", "trans", "expressions", "tokens"):
+        for name in ("poses", "trans", "expressions", "tokens", "arkit"):
             np.testing.assert_array_equal(getattr(x, name), getattr(y, name), err_msg=f"step {x.step} {name}")
 
 
@@ -188,6 +190,20 @@ def test_words_move_the_motion_from_their_step_on_and_speech_is_told_from_silenc
     speech_steps = len(pcm) // STEP_SAMPLES
     assert np.mean([s.speaking for s in with_words[:speech_steps]]) > 0.6
     assert not any(s.speaking for s in with_words[speech_steps + 1 :])
+
+
+def test_the_face_comes_as_arkit_weights_whose_jaw_follows_the_voice(engine, clip):
+    pcm, _ = clip
+    steps = by_steps(engine, np.concatenate([pcm, np.zeros(2 * len(pcm), np.float32)]))
+    arkit = np.stack([s.arkit for s in steps])  # (T, 2, 52)
+    assert arkit.shape == (len(steps), 2, len(ARKIT_NAMES)) and arkit.dtype == np.float32
+    assert arkit.min() >= 0.0 and arkit.max() <= 1.0
+    for s in steps[::7]:
+        np.testing.assert_array_equal(s.arkit, arkit_weights(s.expressions, s.poses[:, JAW_JOINT]))
+    jaw_open = arkit[:, :, ARKIT_NAMES.index("jawOpen")].mean(axis=1)  # (T,)
+    speaking = np.array([s.speaking for s in steps])
+    assert speaking.any() and not speaking.all()
+    assert jaw_open[speaking].mean() > jaw_open[~speaking].mean() + 0.03
 
 
 def test_word_tokens_land_on_the_steps_the_dialogue_speaker_gives_them():
