@@ -11,8 +11,8 @@ against the local backend's condition spec) and measures:
   voice-activity accuracy of the VA head, the ratio of mean joint speed while listening to while speaking, and the
   codecs' MPJPE (all three regions through encode -> decode) on what they model, the sessions' ``gesture_poses`` (the
   motion without the micro-motion that the agent's runtime layer adds, gesture.layers.micro_motion), and on the whole
-  motion for comparison. 30 minutes in all: the listening/speaking ratio of a single minute moves by ±40 % with the sampling
-  seed alone, more than the goal's tolerance;
+  motion for comparison. 30 minutes in all: the listening/speaking ratio of a single minute moves by ±40 % with the
+  sampling seed alone, more than the goal's tolerance;
 - on the real BEAT2 clip spoken by the `playback` backend (its DialogueSteps fed to the generator): BeatAlign
   and L1 divergence next to GT's;
 - no collapse: the mean joint speed over a 5-minute generated session (held-out conditions, looped) against its
