@@ -1,12 +1,12 @@
 """The gesture stage: dialogue.step -> gesture.step (2 frames of SMPL-X parameters, 20 tokens, voice activity).
 
-`create_component(cfg, run)` loads the LM and the three codecs, checks the LM's condition spec against the
-dialogue backend's (`gesture.dialogue_spec`, filled in by the launcher), warms up, and returns the component.
-A new session resets the generator. `close()` writes `gesture.json` (step count and step-time percentiles) and, in
-offline runs, `motion.npz`: every generated step in BEAT2's layout (poses (2T, 165), trans (2T, 3), expressions
-(2T, 100), mocap_frame_rate 25) plus tokens (T, 20) and va_prob (T,), so `python -m render.play`,
-`ecas evaluate --motion` and the data tools read it like a BEAT2 take. Live runs keep no record:
-nothing in a live session grows with time.
+`create_component(cfg, run)` builds the engine (`gesture.engine`: the LM, the three codecs, the runtime layers),
+which checks the LM's condition spec against the dialogue backend's (`gesture.dialogue_spec`, filled in by the
+launcher) and warms up. The component drives it with the dialogue stage's codes; a new session resets it.
+`close()` writes `gesture.json` (step count and step-time percentiles) and, in offline runs, `motion.npz`: every
+generated step in BEAT2's layout (poses (2T, 165), trans (2T, 3), expressions (2T, 100), mocap_frame_rate 25) plus
+tokens (T, 20) and va_prob (T,), so `python -m render.play`, `ecas evaluate --motion` and the data tools read it
+like a BEAT2 take. Live runs keep no record: nothing in a live session grows with time.
 """
 
 from __future__ import annotations
@@ -18,18 +18,13 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ecas.core.component import RunContext
-from ecas.core.config import ConfigError
 from ecas.core.messages import DialogueStep, GestureStep, Message
-from ecas.core.timing import MOTION_FPS, STEP_SAMPLES
+from ecas.core.timing import MOTION_FPS
+from gesture.build import build_generator  # noqa: F401 (re-exported: its old home)
 from gesture.config import GestureConfig
-from gesture.generator import GestureGenerator, level_slices
-from gesture.layers import LayerEnv, build_layers
-from gesture.lm.checkpoint import load_lm
-from gesture.lm.codecs import load_codecs
-from gesture.nn.weights import UnsupportedFormError, require_fast_form
+from gesture.engine import Engine, MotionStep
 
 log = logging.getLogger(__name__)
 STATS_FILE = "gesture.json"
@@ -37,8 +32,11 @@ MOTION_FILE = "motion.npz"
 
 
 class GestureComponent:
-    def __init__(self, generator: GestureGenerator, run: RunContext) -> None:
-        self.generator = generator
+    """Drives the engine with the dialogue stage's conditioning (`Engine.step_conditioned`): `--speak`, the live
+    loop and user code run one path."""
+
+    def __init__(self, engine: Engine, run: RunContext) -> None:
+        self.engine = engine
         self.run = run
         self.session: str | None = None
         self.step_ms: list[float] = []  # bounded: summarised and cleared every STATS_EVERY steps
@@ -50,11 +48,11 @@ class GestureComponent:
             return ()
         if msg.session != self.session:
             if self.session is not None:
-                self.generator.reset()
+                self.engine.reset()
             self.session = msg.session
             self.summary["sessions"] += 1
         start = time.perf_counter()
-        out = self.generator.step(msg.text_token, msg.agent_codes, msg.agent_pcm)
+        out = self.engine.step_conditioned(msg.text_token, msg.agent_codes, msg.agent_pcm, speaking=msg.agent_speaking)
         self._record((time.perf_counter() - start) * 1e3)
         step = GestureStep(
             poses=out.poses, trans=out.trans, expressions=out.expressions, tokens=out.tokens, va_prob=out.va_prob
@@ -85,15 +83,15 @@ class GestureComponent:
 
     def close(self) -> None:
         self._summarise()
-        self.generator.close()
+        self.engine.close()
         self.run.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run.run_dir / STATS_FILE).write_text(json.dumps(self.summary, indent=2))
         if self.record:
             write_motion(self.run.run_dir / MOTION_FILE, self.record)
 
 
-def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
-    """The generated steps as one npz (see the module docstring)."""
+def write_motion(path: Path, steps: Sequence[GestureStep | MotionStep]) -> None:
+    """The generated steps (the stage's messages or the engine's steps) as one npz (see the module docstring)."""
     poses = np.concatenate([s.poses for s in steps])  # (2T, 55, 3)
     np.savez(
         path,
@@ -106,55 +104,14 @@ def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
     )
 
 
-def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
-    """The generator of a `gesture:` section: checkpoints, spec check, sampling options, runtime layers."""
-    if cfg.lm_checkpoint is None:
-        raise ConfigError("gesture.lm_checkpoint: required (a directory written by ecas train-lm)")
-    if cfg.codec_checkpoints is None:
-        raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
-    try:
-        require_fast_form(cfg.dtype, "gesture.dtype", cfg.dtype_fallback, "gesture.dtype_fallback")
-    except UnsupportedFormError as error:
-        raise ConfigError(str(error)) from None
-    lm = load_lm(cfg.lm_checkpoint, cfg.dialogue_spec)
-    codecs = load_codecs(cfg.codec_checkpoints)
-    layers = build_layers(cfg.layers, LayerEnv(seed=seed, fps=MOTION_FPS, levels=level_slices(lm)))
-    return GestureGenerator(
-        lm,
-        codecs,
-        temperature=cfg.temperature,
-        top_p_temporal=cfg.top_p_temporal,
-        top_p_depth=cfg.top_p_depth,
-        cfg_scale=cfg.cfg_scale,
-        speaker=cfg.speaker,
-        seed=seed,
-        dtype=cfg.dtype,
-        hold_bias=cfg.hold_bias,
-        hold_levels=cfg.hold_levels,
-        layers=layers,
-        speaking_rms=cfg.speaking_rms,
-        initial_translation=cfg.initial_translation,
-    )
-
-
-def warm_up(generator: GestureGenerator, steps: int) -> None:
-    """Run `steps` silent steps (no condition), then reset: first-call allocations happen before the stream."""
-    silence = np.zeros(STEP_SAMPLES, np.float32)
-    for _ in range(steps):
-        generator.step(-1, np.full(generator.spec.n_audio_codebooks, -1), silence)
-    generator.reset()
-
-
 def create_component(cfg: GestureConfig, run: RunContext) -> GestureComponent:
-    torch.set_num_threads(1)
-    generator = build_generator(cfg, run.seed)
-    warm_up(generator, cfg.warmup_steps)
+    engine = Engine.from_sections(cfg, seed=run.seed, conditioner=False)  # the dialogue stage sends the codes
     log.info(
         "gesture LM %s (spec %s), codecs %s, cfg %.2f, dtype %s",
         cfg.lm_checkpoint,
-        generator.spec.name,
+        engine.spec.name,
         cfg.codec_checkpoints,
         cfg.cfg_scale,
         cfg.dtype,
     )
-    return GestureComponent(generator, run)
+    return GestureComponent(engine, run)
