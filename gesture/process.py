@@ -1,11 +1,12 @@
 """The gesture stage: dialogue.step -> gesture.step (2 frames of SMPL-X parameters, 20 tokens, voice activity).
 
-`create_component(cfg, run)` loads the LM and the three codecs, checks the LM's condition spec against the
-dialogue backend's (`gesture.dialogue_spec`, filled in by the launcher), warms up, and returns the component.
-A new session resets the generator. `close()` writes `gesture.json` (step count and step-time percentiles) and, in
-offline runs, `motion.npz`: every generated step in BEAT2's layout (poses (2T, 165), trans (2T, 3), expressions
-(2T, 100), mocap_frame_rate 25) plus tokens (T, 20) and va_prob (T,), so `python -m render.play`,
-`python -m gesture.evaluate --motion` and the data tools read it like a BEAT2 take. Live runs keep no record:
+`create_component(cfg, run)` builds the engine (`gesture.engine`: the LM, the three codecs, the runtime layers),
+which checks the LM's condition spec against the dialogue backend's (`gesture.dialogue_spec`, filled in by the
+launcher) and warms up. The component drives it with the dialogue stage's codes; a new session resets it.
+`close()` writes `gesture.json` (step count and step-time percentiles) and, in offline runs, `motion.npz`: every
+generated step in BEAT2's layout (poses (2T, 165), trans (2T, 3), expressions (2T, 100), mocap_frame_rate 25) plus
+tokens (T, 20) and va_prob (T,), so `python -m render.play`, `python -m gesture.evaluate --motion` and the data
+tools read it like a BEAT2 take. Live runs keep no record:
 nothing in a live session grows with time.
 """
 
@@ -18,32 +19,20 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from ecas.core.body import COLLARS
 from ecas.core.component import RunContext
-from ecas.core.config import ConfigError
 from ecas.core.messages import DialogueStep, GestureStep, Message
-from ecas.core.timing import MOTION_FPS, STEP_SAMPLES
-from gesture.alternation_filter import AlternationFilter
-from gesture.body.skeleton import Skeleton
-from gesture.config import (
-    AlternationFilterConfig,
-    FaceLayerConfig,
-    FootLockConfig,
-    GestureConfig,
-    MicroMotionConfig,
-    StabilizerConfig,
+from ecas.core.timing import MOTION_FPS
+from gesture.build import (  # noqa: F401 (re-exported: the builders' old home)
+    build_alternation_filter,
+    build_face_layer,
+    build_foot_lock,
+    build_generator,
+    build_micro_motion,
+    build_stabilizer,
 )
-from gesture.face_layer import FaceLayer
-from gesture.foot_lock import FootLock
-from gesture.generator import GestureGenerator
-from gesture.lm.checkpoint import load_lm
-from gesture.lm.codecs import load_codecs
-from gesture.lm.idle import IdleGate, load_idle_slices
-from gesture.micro_motion import HeadDrift, MicroMotion, calibrated_micro_motion
-from gesture.nn.weights import UnsupportedFormError, require_fast_form
-from gesture.stabilizer import ArmStabilizer
+from gesture.config import GestureConfig
+from gesture.engine import Engine, MotionStep
 
 log = logging.getLogger(__name__)
 STATS_FILE = "gesture.json"
@@ -51,8 +40,11 @@ MOTION_FILE = "motion.npz"
 
 
 class GestureComponent:
-    def __init__(self, generator: GestureGenerator, run: RunContext) -> None:
-        self.generator = generator
+    """Drives the engine with the dialogue stage's conditioning (`Engine.step_conditioned`): `--speak`, the live
+    loop and user code run one path."""
+
+    def __init__(self, engine: Engine, run: RunContext) -> None:
+        self.engine = engine
         self.run = run
         self.session: str | None = None
         self.step_ms: list[float] = []  # bounded: summarised and cleared every STATS_EVERY steps
@@ -64,11 +56,11 @@ class GestureComponent:
             return ()
         if msg.session != self.session:
             if self.session is not None:
-                self.generator.reset()
+                self.engine.reset()
             self.session = msg.session
             self.summary["sessions"] += 1
         start = time.perf_counter()
-        out = self.generator.step(msg.text_token, msg.agent_codes, msg.agent_pcm)
+        out = self.engine.step_conditioned(msg.text_token, msg.agent_codes, msg.agent_pcm, speaking=msg.agent_speaking)
         self._record((time.perf_counter() - start) * 1e3)
         step = GestureStep(
             poses=out.poses, trans=out.trans, expressions=out.expressions, tokens=out.tokens, va_prob=out.va_prob
@@ -99,15 +91,15 @@ class GestureComponent:
 
     def close(self) -> None:
         self._summarise()
-        self.generator.close()
+        self.engine.close()
         self.run.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run.run_dir / STATS_FILE).write_text(json.dumps(self.summary, indent=2))
         if self.record:
             write_motion(self.run.run_dir / MOTION_FILE, self.record)
 
 
-def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
-    """The generated steps as one npz (see the module docstring)."""
+def write_motion(path: Path, steps: Sequence[GestureStep | MotionStep]) -> None:
+    """The generated steps (the stage's messages or the engine's steps) as one npz (see the module docstring)."""
     poses = np.concatenate([s.poses for s in steps])  # (2T, 55, 3)
     np.savez(
         path,
@@ -120,126 +112,14 @@ def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
     )
 
 
-def build_generator(cfg: GestureConfig, seed: int) -> GestureGenerator:
-    """The generator of a `gesture:` section: checkpoints, spec check, sampling options, idle gate."""
-    if cfg.lm_checkpoint is None:
-        raise ConfigError("gesture.lm_checkpoint: required (a directory written by python -m gesture.train_lm)")
-    if cfg.codec_checkpoints is None:
-        raise ConfigError("gesture.codec_checkpoints: required (a directory with upper/, lower/ and face/ codecs)")
-    try:
-        require_fast_form(cfg.dtype, "gesture.dtype", cfg.dtype_fallback, "gesture.dtype_fallback")
-    except UnsupportedFormError as error:
-        raise ConfigError(str(error)) from None
-    expected = cfg.dialogue_spec
-    lm = load_lm(cfg.lm_checkpoint, expected)
-    codecs = load_codecs(cfg.codec_checkpoints)
-    idle = None
-    if cfg.idle.enabled:
-        upper, face = load_idle_slices(cfg.idle.slices_dir)
-        s = lm.sizes
-        idle = IdleGate(
-            upper,
-            face,
-            slice(0, s.n_upper),
-            slice(s.face_levels.start, s.n_levels),
-            cfg.idle.window_samples,
-            cfg.idle.l2_threshold,
-            cfg.idle.rewind_below_tokens,
-        )
-    return GestureGenerator(
-        lm,
-        codecs,
-        temperature=cfg.temperature,
-        top_p_temporal=cfg.top_p_temporal,
-        top_p_depth=cfg.top_p_depth,
-        cfg_scale=cfg.cfg_scale,
-        speaker=cfg.speaker,
-        seed=seed,
-        dtype=cfg.dtype,
-        hold_bias=cfg.hold_bias,
-        hold_levels=cfg.hold_levels,
-        idle_gate=idle,
-        micro_motion=build_micro_motion(cfg.micro_motion, seed),
-        face_layer=build_face_layer(cfg.face, seed),
-        foot_lock=build_foot_lock(cfg.foot_lock),
-        stabilizer=build_stabilizer(cfg.stabilizer),
-        alternation_filter=build_alternation_filter(cfg.alternation_filter),
-        initial_translation=cfg.initial_translation,
-    )
-
-
-def build_micro_motion(cfg: MicroMotionConfig, seed: int) -> MicroMotion | None:
-    """The `gesture.micro_motion` layer, or None when it is off."""
-    if not cfg.enabled:
-        return None
-    drift = HeadDrift(cfg.head_drift_rad, cfg.head_drift_hz, MOTION_FPS, seed) if cfg.head_drift_rad > 0 else None
-    try:
-        collars = {j: cfg.collar_cutoff_hz for j in COLLARS} if cfg.collar_cutoff_hz > 0 else {}
-        return calibrated_micro_motion(cfg.joints, MOTION_FPS, seed, cfg.scale, drift, collars)
-    except ValueError as error:
-        raise ConfigError(f"gesture.micro_motion.joints: {error}") from None
-
-
-def build_face_layer(cfg: FaceLayerConfig, seed: int) -> FaceLayer | None:
-    """The `gesture.face` layer on the decoded expressions, or None when it is off."""
-    if not cfg.enabled:
-        return None
-    return FaceLayer(MOTION_FPS, seed, cfg.blinks_per_minute, cfg.brow_cutoff_hz)
-
-
-def build_foot_lock(cfg: FootLockConfig) -> FootLock | None:
-    """The `gesture.foot_lock` layer on the decoded legs (the built-in skeleton, as the training data's), or None."""
-    if not cfg.enabled:
-        return None
-    return FootLock(Skeleton.default(), MOTION_FPS, cfg.release_m, cfg.release_speaking_m, cfg.blend_s, cfg.step_s)
-
-
-def build_stabilizer(cfg: StabilizerConfig) -> ArmStabilizer | None:
-    """The `gesture.stabilizer` smoothing of the output arms, or None when it is off."""
-    if not cfg.enabled:
-        return None
-    try:
-        return ArmStabilizer(
-            cfg.joints,
-            MOTION_FPS,
-            cfg.min_cutoff_hz,
-            cfg.speed_gain_hz,
-            cfg.speed_cutoff_hz,
-            cfg.hold_rad,
-            cfg.settle_share,
-        )
-    except ValueError as error:
-        raise ConfigError(f"gesture.stabilizer: {error}") from None
-
-
-def build_alternation_filter(cfg: AlternationFilterConfig) -> AlternationFilter | None:
-    """The `gesture.alternation_filter` on the decoded motion, or None when it is off."""
-    if not cfg.enabled:
-        return None
-    try:
-        return AlternationFilter(cfg.joints)
-    except ValueError as error:
-        raise ConfigError(f"gesture.alternation_filter: {error}") from None
-
-
-def warm_up(generator: GestureGenerator, steps: int) -> None:
-    """Run `steps` silent steps (no condition), then reset: first-call allocations happen before the stream."""
-    silence = np.zeros(STEP_SAMPLES, np.float32)
-    for _ in range(steps):
-        generator.step(-1, np.full(generator.spec.n_audio_codebooks, -1), silence)
-    generator.reset()
-
-
 def create_component(cfg: GestureConfig, run: RunContext) -> GestureComponent:
-    torch.set_num_threads(1)
-    generator = build_generator(cfg, run.seed)
-    warm_up(generator, cfg.warmup_steps)
+    engine = Engine.from_sections(cfg, seed=run.seed, conditioner=False)  # the dialogue stage sends the codes
     log.info(
         "gesture LM %s (spec %s), codecs %s, cfg %.2f, dtype %s",
         cfg.lm_checkpoint,
-        generator.spec.name,
+        engine.spec.name,
         cfg.codec_checkpoints,
         cfg.cfg_scale,
         cfg.dtype,
     )
-    return GestureComponent(generator, run)
+    return GestureComponent(engine, run)
