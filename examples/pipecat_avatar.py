@@ -5,9 +5,10 @@
         a streaming TTS sends), passes through the avatar service, and a sink writes its video and audio to OUT.mp4.
         Prints one JSON line: pipecat_version, frames, dropped_frames, av_offset_ms (measured from the written file),
         latency_ms {p50, p95} (a speech frame entering the service -> its video frame leaving it), and more.
-    python examples/pipecat_avatar.py [--port 7860] [--llm-url URL --llm-model NAME]
-        The live bot in the browser, on pipecat's SmallWebRTC transport and development runner: the project's local
-        speech recognition and voice, any OpenAI-compatible LLM (without one, the project's rule-based responder).
+    python examples/pipecat_avatar.py [--host localhost --port 7860] [--llm-url URL --llm-model NAME]
+        The live bot: open http://localhost:7860/client. pipecat's SmallWebRTC transport and development runner, the
+        project's local speech recognition (pocketsphinx) and voice (espeak-ng), any OpenAI-compatible LLM (without
+        one, the project's rule-based responder).
 
 Needs the `pipecat` extra: pip install '<checkout>[pipecat]'.
 """
@@ -35,7 +36,7 @@ DEFAULT_CHUNK_MS = (20, 120)  # a streaming TTS sends chunks of about this size 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--tts-wav", type=Path, help="speak this recording through a TTS service stand-in (offline test)")
+    p.add_argument("--tts-wav", type=Path, required=True, help="speak this recording as a TTS service would")
     p.add_argument("--mp4", type=Path, help="with --tts-wav: write the avatar's video and the speech here")
     p.add_argument("--json", action="store_true", help="with --tts-wav: print one JSON line of measurements")
     p.add_argument("--chunk-ms", type=int, nargs=2, default=DEFAULT_CHUNK_MS, metavar=("MIN", "MAX"))
@@ -45,14 +46,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--camera", default="upper", choices=("full", "upper", "face"))
     p.add_argument("--config", type=Path, default=None, help="the agent's YAML config (default: the packaged one)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--host", default="localhost", help="live bot: the address the runner serves on")
-    p.add_argument("--port", type=int, default=7860, help="live bot: the runner's port")
-    p.add_argument("--llm-url", default=os.environ.get("OPENAI_BASE_URL"), help="an OpenAI-compatible endpoint")
-    p.add_argument("--llm-model", default=os.environ.get("ECAS_LLM_MODEL", "gpt-4o-mini"))
     args = p.parse_args(argv)
-    if args.tts_wav is None and (args.mp4 or args.json):
-        p.error("--mp4 and --json go with --tts-wav")
-    if args.tts_wav is not None and not args.tts_wav.is_file():
+    if not args.tts_wav.is_file():
         p.error(f"--tts-wav: no such file: {args.tts_wav}")
     if not 1 <= args.chunk_ms[0] <= args.chunk_ms[1]:
         p.error("--chunk-ms: need 1 <= MIN <= MAX")
@@ -186,19 +181,103 @@ def _version(dist: str) -> str:
 
 # -- live: the bot in the browser ---------------------------------------------------------------------------------
 
+LIVE: argparse.Namespace | None = None  # the live options, read before pipecat's runner takes the command line
+SYSTEM_PROMPT = "You are a friendly embodied assistant. Answer in one or two short spoken sentences, no markdown."
 
-def run_live(args: argparse.Namespace) -> None:
-    """pipecat's development runner serves its prebuilt WebRTC page; each browser session runs `live_bot`."""
-    from examples.pipecat_live import serve
 
-    serve(args)
+def live_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description="the live avatar bot (pipecat's development runner)")
+    p.add_argument("--size", type=int, default=384)
+    p.add_argument("--camera", default="upper", choices=("full", "upper", "face"))
+    p.add_argument("--config", type=Path, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--llm-url", default=os.environ.get("OPENAI_BASE_URL"), help="an OpenAI-compatible endpoint")
+    p.add_argument("--llm-model", default=os.environ.get("ECAS_LLM_MODEL", "gpt-4o-mini"))
+    return p
+
+
+def live_services(args: argparse.Namespace):
+    """(stt, llm, tts): the project's local recognition and voice; an OpenAI-compatible LLM when a URL is given,
+    else the project's rule-based responder."""
+    from ecas.pipecat.local import LocalSTTService, LocalTTSService, RuleResponderService
+
+    if args.llm_url:
+        from pipecat.services.openai.llm import OpenAILLMService
+
+        llm = OpenAILLMService(
+            api_key=os.environ.get("OPENAI_API_KEY", "none"),
+            base_url=args.llm_url,
+            settings=OpenAILLMService.Settings(model=args.llm_model),
+        )
+    else:
+        llm = RuleResponderService(seed=args.seed)
+    return LocalSTTService(), llm, LocalTTSService()
+
+
+async def bot(runner_args) -> None:
+    """One browser session (pipecat's runner calls this): SmallWebRTC in and out, the avatar as its video."""
+    from pipecat.audio.vad.silero import SileroVADAnalyzer
+    from pipecat.frames.frames import TTSSpeakFrame
+    from pipecat.pipeline.pipeline import Pipeline
+    from pipecat.pipeline.worker import PipelineParams, PipelineWorker
+    from pipecat.processors.aggregators.llm_context import LLMContext
+    from pipecat.processors.aggregators.llm_response_universal import LLMContextAggregatorPair
+    from pipecat.processors.audio.vad_processor import VADProcessor
+    from pipecat.transports.base_transport import TransportParams
+    from pipecat.transports.smallwebrtc.transport import SmallWebRTCTransport
+    from pipecat.workers.runner import WorkerRunner
+
+    args = LIVE or live_parser().parse_args([])
+    avatar = avatar_service(args)
+    params = TransportParams(
+        audio_in_enabled=True,
+        audio_out_enabled=True,
+        video_out_enabled=True,
+        video_out_width=avatar.width,
+        video_out_height=avatar.height,
+        video_out_framerate=25,
+    )
+    transport = SmallWebRTCTransport(webrtc_connection=runner_args.webrtc_connection, params=params)
+    stt, llm, tts = live_services(args)
+    context = LLMContext([{"role": "system", "content": SYSTEM_PROMPT}])
+    turns = LLMContextAggregatorPair(context)
+    vad = VADProcessor(vad_analyzer=SileroVADAnalyzer())
+    pipeline = Pipeline(
+        [transport.input(), vad, stt, turns.user(), llm, tts, avatar, transport.output(), turns.assistant()]
+    )
+    worker = PipelineWorker(pipeline, params=PipelineParams(enable_metrics=False))
+
+    @transport.event_handler("on_client_connected")
+    async def on_client_connected(transport, client):
+        await worker.queue_frame(TTSSpeakFrame("Hello! I am listening."))
+
+    @transport.event_handler("on_client_disconnected")
+    async def on_client_disconnected(transport, client):
+        await worker.cancel()
+
+    runner = WorkerRunner(handle_sigint=runner_args.handle_sigint)
+    await runner.add_workers(worker)
+    await runner.run()
+
+
+def run_live(argv: list[str]) -> None:
+    """pipecat's development runner serves its prebuilt WebRTC page (http://HOST:PORT/client); each browser session
+    runs `bot`. The runner reads the command line itself (--host, --port, -t ...), with our options added."""
+    global LIVE
+    from pipecat.runner.run import main as runner_main
+
+    parser = live_parser()
+    LIVE, _ = parser.parse_known_args(argv)
+    sys.argv = [sys.argv[0], *argv]
+    runner_main(parser)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    if args.tts_wav is None:
-        run_live(args)
+    argv = sys.argv[1:] if argv is None else argv
+    if "--tts-wav" not in argv:
+        run_live(argv)
         return 0
+    args = parse_args(argv)
     result = asyncio.run(run_offline(args))
     print(json.dumps(result) if args.json else json.dumps(result, indent=2))
     return 0

@@ -19,8 +19,8 @@ def pcm16_to_mono(audio: bytes, num_channels: int) -> np.ndarray:
 
 
 def mono_to_pcm16(pcm: np.ndarray) -> bytes:
-    """(N,) float32 in [-1, 1] -> int16 bytes."""
-    return (np.clip(pcm, -1.0, 1.0) * 32767.0).round().astype(np.int16).tobytes()
+    """(N,) float32 in [-1, 1] -> int16 bytes (the exact inverse of `pcm16_to_mono` on mono audio)."""
+    return np.clip(np.round(np.asarray(pcm, np.float32) * INT16_SCALE), -32768, 32767).astype(np.int16).tobytes()
 
 
 class ToEngineRate:

@@ -89,6 +89,7 @@ class _Plan:
     speech: StepAudio | None
     user_pcm: np.ndarray
     words: tuple
+    due_s: float  # monotonic time at which the step is shown, if the transport plays what it is given in real time
 
 
 class AvatarService(FrameProcessor):
@@ -114,6 +115,7 @@ class AvatarService(FrameProcessor):
         if stall_s <= 0:
             raise ValueError(f"stall_s: must be > 0, got {stall_s}")
         self._engine, self._engine_args = engine, (config, tuple(overrides), seed)
+        self._owns_engine = engine is None  # a given engine is reset at start and left open at the end
         self._render_cfg, self._motion_frames, self._idle_video, self._stall_s = (
             render,
             motion_frames,
@@ -238,6 +240,8 @@ class AvatarService(FrameProcessor):
 
             config, overrides, seed = self._engine_args
             self._engine = Engine.from_config(config=config, overrides=overrides, seed=seed)
+        else:
+            self._engine.reset()
 
     def _open_view(self) -> None:
         from render.view import AvatarView, load_body
@@ -283,8 +287,9 @@ class AvatarService(FrameProcessor):
             self._render_pool = None
 
     def _close_engine(self) -> None:
-        if self._engine is not None and hasattr(self._engine, "close"):
+        if self._owns_engine and self._engine is not None:
             self._engine.close()
+            self._engine = None
 
     def _close_view(self) -> None:
         if self._view is not None:
@@ -342,7 +347,6 @@ class AvatarService(FrameProcessor):
             self._in_utterance = self._utterance_ended = False
         if step is None:
             return None
-        self._steps_out += 1
         self._anchor_s = max(self._anchor_s, time.monotonic() - self._steps_out * STEP_S)
         self._in_flight += 1
         return self._plan(step)
@@ -358,12 +362,13 @@ class AvatarService(FrameProcessor):
             skipped = int(late_s / STEP_S)
             self.stats.skipped_idle_steps += skipped
             self._anchor_s += skipped * STEP_S
-        self._steps_out += 1
         return self._plan(None)
 
     def _plan(self, speech: StepAudio | None) -> _Plan:
         words, self._words = tuple(self._words), []
-        return _Plan(self._generation, speech, self._user.take(), words)
+        due_s = self._anchor_s + self._steps_out * STEP_S
+        self._steps_out += 1
+        return _Plan(self._generation, speech, self._user.take(), words, due_s)
 
     def _wait_s(self) -> float | None:
         if self._in_utterance:
@@ -413,12 +418,13 @@ class AvatarService(FrameProcessor):
                 arrival_ns = speech.arrival_ns[index] if speech is not None else None
                 if not await self._push_image(plan, motion, index, arrival_ns):
                     return  # interrupted while rendering
-            if speech is not None:
-                await self.push_frame(self._speech_frame(speech.frame_pcm(index)))
+            if speech is None:
+                self.stats.idle_frames += 1
+                continue
+            await self.push_frame(self._speech_frame(speech.frame_pcm(index)))
+            self.stats.speech_frames += 1
         if speech is None:
-            self.stats.idle_frames += FRAMES_PER_STEP
             return
-        self.stats.speech_frames += FRAMES_PER_STEP
         await self._push_markers(speech.markers, speech.end_samples)
         self._in_flight -= 1
         if self._in_flight == 0 and self._speech.waiting_samples == 0:
@@ -426,9 +432,10 @@ class AvatarService(FrameProcessor):
                 await self.push_frame(marker.item)
 
     async def _push_image(self, plan: _Plan, motion, index: int, arrival_ns: int | None) -> bool:
-        """Render frame `index` of the step and push it; a speech frame already later than `max_lag_ms` repeats the
-        last image instead (counted as dropped). False when an interruption came during the render."""
-        late = arrival_ns is not None and time.monotonic_ns() - arrival_ns > self._render_cfg.max_lag_ms * 1e6
+        """Render frame `index` of the step and push it; a speech frame already `max_lag_ms` past the time it is shown
+        repeats the last image instead (counted as dropped). False when an interruption came during the render."""
+        due_s = plan.due_s + index * STEP_S / FRAMES_PER_STEP
+        late = arrival_ns is not None and time.monotonic() - due_s > self._render_cfg.max_lag_ms / 1000
         if late and self._last_image is not None:
             self.stats.dropped_frames += 1
             rgb = self._last_image
