@@ -18,6 +18,9 @@ from ecas.core.timing import FRAME_SAMPLES, MOTION_FPS, SAMPLE_RATE_HZ
 from ecas.pipecat.audio import pcm16_to_mono
 from render.mp4 import BackgroundMp4Writer, Mp4Writer
 
+VOICED_RMS = 0.02  # a 1 s piece of speech this loud (-34 dBFS) is found unambiguously by cross-correlation
+MATCH_GAIN = (0.8, 1.25)  # the correlation peak over the piece's energy: near 1 where the file holds the piece
+
 
 class Mp4Sink(FrameProcessor):
     """The last processor of a pipeline: every image with its audio into `path` (written on EndFrame)."""
@@ -88,22 +91,44 @@ def decode_mp4(path: str | Path) -> tuple[np.ndarray, np.ndarray, float]:
     return np.asarray(video, np.float64), audio, float(rate)
 
 
-def speech_offset_ms(path: str | Path, speech: np.ndarray, first_speech_frame: int) -> float:
-    """Audio-to-video offset of the speech in the written file, ms (positive: the sound comes after its picture).
+def speech_offset_ms(path: str | Path, speech: np.ndarray, first_speech_frame: int, probes: int = 5) -> float:
+    """Audio-to-video offset of the speech in the written file, ms (positive: the sound comes after its picture);
+    the largest in magnitude of `probes` places spread over the speech, so a drift shows too.
 
-    The speech (24 kHz) is located in the decoded audio track by cross-correlation of the first 2 s; the picture of
-    its first sample is the video frame the service marked as its first speaking frame, at its decoded time."""
+    At each place a 1 s piece of the speech (24 kHz) is found in the decoded audio track by cross-correlation within
+    ±1 s of where it belongs; its picture is where the same sample sits on the video track, counted from the frame
+    the service marked as the first speaking frame, at its decoded time."""
     from scipy.signal import correlate
 
     video_times, audio, rate = decode_mp4(path)
     if rate != SAMPLE_RATE_HZ:
         raise ValueError(f"{path}: audio at {rate} Hz, expected {SAMPLE_RATE_HZ}")
-    probe = speech[: 2 * SAMPLE_RATE_HZ]
-    window = audio[: probe.size + 10 * SAMPLE_RATE_HZ]
-    lags = correlate(window, probe, mode="valid", method="fft")  # (len(window) - len(probe) + 1,)
-    sound_s = int(np.argmax(lags)) / rate
-    picture_s = float(video_times[first_speech_frame]) if first_speech_frame < len(video_times) else np.nan
-    return 1000.0 * (sound_s - picture_s)
+    if first_speech_frame >= len(video_times):
+        raise ValueError(f"{path}: has no frame {first_speech_frame}")
+    picture0_s = float(video_times[first_speech_frame])
+    piece, search = SAMPLE_RATE_HZ, SAMPLE_RATE_HZ
+    offsets = []
+    for at in _voiced_places(speech, piece, probes):
+        probe = speech[at : at + piece]
+        picture_s = picture0_s + at / SAMPLE_RATE_HZ
+        lo = max(0, int(round(picture_s * rate)) - search)
+        window = audio[lo : lo + piece + 2 * search]
+        if window.size < piece:
+            continue
+        lags = correlate(window, probe, mode="valid", method="fft")  # (window - piece + 1,)
+        best = int(np.argmax(lags))
+        if MATCH_GAIN[0] < lags[best] / float(np.dot(probe, probe)) < MATCH_GAIN[1]:  # the piece itself, not noise
+            offsets.append(1000.0 * ((lo + best) / rate - picture_s))
+    return max(offsets, key=abs) if offsets else float("nan")
+
+
+def _voiced_places(speech: np.ndarray, piece: int, count: int) -> list[int]:
+    """`count` starts of pieces spread over the speech, each loud enough to be found (silence matches anything)."""
+    starts = np.arange(0, max(1, speech.size - piece + 1), piece // 2)
+    loud = [int(a) for a in starts if np.sqrt(np.mean(np.square(speech[a : a + piece]))) >= VOICED_RMS]
+    if not loud:
+        return []
+    return [loud[i] for i in np.linspace(0, len(loud) - 1, min(count, len(loud))).round().astype(int)]
 
 
 def video_seconds(frames: int) -> float:
