@@ -24,6 +24,7 @@ from agent.clock import ClockSync
 from agent.dashboard.events import (
     BINARY_AUDIO,
     BINARY_FRAME,
+    BINARY_MOTION,
     LatencyMeter,
     RunState,
     Transcript,
@@ -38,14 +39,24 @@ from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
 from ecas.core.bus import Publisher, Subscriber, stage_address
 from ecas.core.component import RunContext
-from ecas.core.messages import Command, Control, DialogueStep, Message, Metrics, MicAudio, RenderFrame
+from ecas.core.messages import (
+    Command,
+    Control,
+    DialogueStep,
+    GestureStep,
+    Message,
+    Metrics,
+    MicAudio,
+    RenderFrame,
+)
+from render.motion_wire import encode, motion_packet
 
 log = logging.getLogger("dashboard")
 
 DASHBOARD = "dashboard"
-TOPICS = ("control", "metrics", "dialogue.step", "render.frame")
+TOPICS = ("control", "metrics", "dialogue.step", "gesture.step", "render.frame")
 LIVE_QUEUE_MESSAGES = 64  # data messages waiting here; past it the oldest frames are dropped and counted ...
-KEPT_TOPICS = ("metrics", "dialogue.step")  # ... never the words, speech and latencies (small, one per step)
+KEPT_TOPICS = ("metrics", "dialogue.step", "gesture.step")  # ... never the words, speech, motion and latencies
 POLL_S = 0.01
 COUNTERS_EVERY_S = 0.5
 URL_FILE = "dashboard.url"
@@ -86,6 +97,7 @@ class DashboardBridge:
         self.stopping = False
         self.frames_in = 0
         self.bad_frames = 0
+        self.motion_steps = 0
 
     def snapshot(self) -> list[dict]:
         return [
@@ -103,6 +115,7 @@ class DashboardBridge:
             "lost": self.sub.lost,
             "decode_errors": self.sub.decode_errors,
             "bad_frames": self.bad_frames,
+            "motion_steps": self.motion_steps,
             "mic_chunks": self.mic_chunks,
             **(self.hub.counters() if self.hub else {}),
         }
@@ -138,9 +151,27 @@ class DashboardBridge:
                 self.hub.broadcast(event)
             if msg.agent_speaking or msg.text_piece:
                 self.hub.broadcast_audio(pack_binary(BINARY_AUDIO, msg.step, 0, pcm_int16(msg.agent_pcm)))
+        elif isinstance(msg, GestureStep):
+            self._on_motion(msg)
         elif isinstance(msg, Metrics):
             for event in self.latency.on_metrics(msg, self.clock.offsets_ns()):
                 self.hub.broadcast(event)
+
+    def _on_motion(self, msg: GestureStep) -> None:
+        """A step's motion to the pages and clients that asked for it, its times on this host's clock."""
+        self.motion_steps += 1
+        if not self.hub.motion_pages:
+            return
+        offsets = self.clock.offsets_ns()
+        packet = motion_packet(
+            msg.step,
+            msg.poses,
+            msg.trans,
+            msg.expressions,
+            t_origin_ns=msg.t_origin_ns - offsets.get(self.pipeline[0], 0) if msg.t_origin_ns else 0,
+            t_motion_ns=msg.stamps.get("gesture", msg.t_ns) - offsets.get("gesture", 0),
+        )
+        self.hub.broadcast_motion(pack_binary(BINARY_MOTION, msg.step, 0, encode(packet)))
 
     def _on_frame(self, msg: RenderFrame) -> None:
         self.frames_in += 1

@@ -4,8 +4,9 @@ The WebSocket pushes JSON events (text messages) and frames / agent audio (binar
 `events.pack_binary`). Every page has its own sender: when a page falls behind, only its newest few frames wait
 (older ones are skipped and counted), so a slow browser never holds up the bus or other pages.
 A page sends `{"type": "control", "command": "start" | "stop"}`, `{"type": "audio", "enabled": bool}` (the
-agent's voice) and, with the browser microphone, `{"type": "mic", "enabled": bool}` then binary int16 PCM at
-24 kHz (header kind BINARY_MIC); one page at a time holds the microphone.
+agent's voice), `{"type": "motion", "enabled": bool}` (the motion stream, docs/motion_stream.md) and, with the
+browser microphone, `{"type": "mic", "enabled": bool}` then binary int16 PCM at 24 kHz (header kind BINARY_MIC);
+one page at a time holds the microphone.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ STATIC_DIR = Path(__file__).parent / "static"
 MAX_PENDING_EVENTS = 2000  # a page this far behind is disconnected; it reconnects and gets a snapshot
 MAX_PENDING_AUDIO = 25  # steps of agent audio (2 s)
 MAX_PENDING_FRAMES = 4  # the render stage publishes a step's two frames together
+MAX_PENDING_MOTION = 50  # steps of motion (4 s); a page further behind skips the oldest (counted)
 COMMANDS = ("start", "stop")
 
 
@@ -41,8 +43,11 @@ class Page:
         self.events: collections.deque[str] = collections.deque()
         self.audio: collections.deque[bytes] = collections.deque(maxlen=MAX_PENDING_AUDIO)
         self.frames: collections.deque[bytes] = collections.deque()
+        self.motion: collections.deque[bytes] = collections.deque()
         self.wants_audio = False
+        self.wants_motion = False
         self.skipped_frames = 0
+        self.skipped_motion = 0
         self.wake = asyncio.Event()
         self.sending = False  # a batch of messages is on its way out
         self.reader: asyncio.Future | None = None  # reads the page's messages until it closes or the run ends
@@ -62,6 +67,13 @@ class Page:
         self.frames.append(data)
         self.wake.set()
 
+    def push_motion(self, data: bytes) -> None:
+        if len(self.motion) >= MAX_PENDING_MOTION:
+            self.motion.popleft()
+            self.skipped_motion += 1
+        self.motion.append(data)
+        self.wake.set()
+
     def push_audio(self, data: bytes) -> None:
         if self.wants_audio:
             self.audio.append(data)
@@ -77,6 +89,8 @@ class Page:
                     await self.ws.send_str(self.events.popleft())
                 while self.audio:
                     await self.ws.send_bytes(self.audio.popleft())
+                while self.motion:
+                    await self.ws.send_bytes(self.motion.popleft())
                 while self.frames:
                     await self.ws.send_bytes(self.frames.popleft())
             finally:
@@ -102,6 +116,7 @@ class Hub:
         self.mic_page: Page | None = None
         self.pages: set[Page] = set()
         self.skipped_frames_closed = 0  # frames skipped by pages that have since closed
+        self.skipped_motion_closed = 0
 
     def broadcast(self, event: Event) -> None:
         if self.pages:
@@ -112,6 +127,14 @@ class Hub:
     def broadcast_frame(self, data: bytes) -> None:
         for page in self.pages:
             page.push_frame(data)
+
+    @property
+    def motion_pages(self) -> list[Page]:
+        return [page for page in self.pages if page.wants_motion]
+
+    def broadcast_motion(self, data: bytes) -> None:
+        for page in self.motion_pages:
+            page.push_motion(data)
 
     def broadcast_audio(self, data: bytes) -> None:
         for page in self.pages:
@@ -124,6 +147,7 @@ class Hub:
         for page in self.pages:
             page.frames.clear()
             page.audio.clear()
+            page.motion.clear()
         self.broadcast(event)
         deadline = time.monotonic() + timeout_s
         while not all(page.flushed for page in self.pages) and time.monotonic() < deadline:
@@ -153,6 +177,7 @@ class Hub:
         return {
             "pages": len(self.pages),
             "skipped_frames": self.skipped_frames_closed + sum(p.skipped_frames for p in self.pages),
+            "skipped_motion": self.skipped_motion_closed + sum(p.skipped_motion for p in self.pages),
         }
 
     async def websocket(self, request: web.Request) -> web.WebSocketResponse:
@@ -179,6 +204,7 @@ class Hub:
                 self.mic_page = None
             self.pages.discard(page)
             self.skipped_frames_closed += page.skipped_frames
+            self.skipped_motion_closed += page.skipped_motion
             sender.cancel()
             page.finished.set()
             log.info("page disconnected (close code %s, %d open)", ws.close_code, len(self.pages))
@@ -204,6 +230,8 @@ class Hub:
             self.on_command(msg["command"])
         elif msg.get("type") == "audio":
             page.wants_audio = bool(msg.get("enabled"))
+        elif msg.get("type") == "motion":
+            page.wants_motion = bool(msg.get("enabled"))
         elif msg.get("type") == "mic":
             self._claim_mic(page, bool(msg.get("enabled")))
         else:
