@@ -276,13 +276,16 @@ class RunState:
         }
 
 
-def hello_event(pipeline: Sequence[str], live: bool, session: str, browser_mic: bool) -> Event:
+def hello_event(
+    pipeline: Sequence[str], live: bool, session: str, browser_mic: bool, render_mode: str = "server"
+) -> Event:
     return {
         "type": "hello",
         "pipeline": list(pipeline),
         "live": live,
         "session": session,
         "browser_mic": browser_mic,
+        "render_mode": render_mode,
         "sample_rate_hz": SAMPLE_RATE_HZ,
         "frames_per_step": FRAMES_PER_STEP,
     }

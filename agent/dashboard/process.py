@@ -82,6 +82,7 @@ class DashboardBridge:
     def __init__(self, launch: DashboardLaunch):
         app = launch.app
         self.cfg, self.live = app.dashboard, launch.run.live
+        self.render_mode = app.render.mode
         self.pipeline = tuple(app.run.stages)
         self.session = launch.run.session
         ctx = zmq.Context.instance()
@@ -101,7 +102,7 @@ class DashboardBridge:
 
     def snapshot(self) -> list[dict]:
         return [
-            hello_event(self.pipeline, self.live, self.session, self.cfg.browser_mic),
+            hello_event(self.pipeline, self.live, self.session, self.cfg.browser_mic, self.render_mode),
             self.run_state.event(),
             *self.transcript.snapshot(),
             *self.latency.snapshot(),
@@ -175,7 +176,7 @@ class DashboardBridge:
 
     def _on_frame(self, msg: RenderFrame) -> None:
         self.frames_in += 1
-        if not self.hub.pages:
+        if not self.hub.pages or msg.encoding == "none":  # render.mode browser: the page draws the avatar
             return
         try:
             jpeg = frame_jpeg(msg, self.cfg.jpeg_quality)

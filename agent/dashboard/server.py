@@ -28,6 +28,7 @@ from agent.dashboard.events import BINARY_HEADER, BINARY_MIC, Event
 log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
+THREE_DIR = Path(__file__).resolve().parents[2] / "node_modules" / "three"  # `npm ci` at setup (package.json)
 MAX_PENDING_EVENTS = 2000  # a page this far behind is disconnected; it reconnects and gets a snapshot
 MAX_PENDING_AUDIO = 25  # steps of agent audio (2 s)
 MAX_PENDING_FRAMES = 4  # the render stage publishes a step's two frames together
@@ -276,8 +277,21 @@ def make_app(hub: Hub) -> web.Application:
     app.router.add_get("/", index)
     app.router.add_get("/state.json", state)
     app.router.add_get("/ws", hub.websocket)
+    app.router.add_get("/avatar.glb", avatar_glb)
     app.router.add_static("/static/", STATIC_DIR)
+    if THREE_DIR.is_dir():
+        app.router.add_static("/vendor/three/", THREE_DIR)
+    else:
+        log.warning("%s is missing: run `npm ci` (render.mode browser draws the avatar with it)", THREE_DIR)
     return app
+
+
+async def avatar_glb(_request: web.Request) -> web.Response:
+    """The built-in avatar as a skinned GLB for the page's three.js (built once, then cached on disk)."""
+    from agent.dashboard.avatar_file import cached_avatar_glb
+
+    path = await asyncio.get_running_loop().run_in_executor(None, cached_avatar_glb)
+    return web.FileResponse(path, headers={"Content-Type": "model/gltf-binary"})
 
 
 async def start_server(

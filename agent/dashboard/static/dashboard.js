@@ -3,7 +3,7 @@
 "use strict";
 
 const STEP_S = 0.08;
-const KIND_FRAME = 1, KIND_AUDIO = 2, KIND_MIC = 3;
+const KIND_FRAME = 1, KIND_AUDIO = 2, KIND_MIC = 3, KIND_MOTION = 4;
 const HISTORY = 250;  // steps on the charts (20 s)
 const MAX_TURNS = 200;
 const STAGE_COLORS = ["#8e9aaf", "#4c9be8", "#f0a13a", "#5cb85c", "#c678dd"];
@@ -27,7 +27,7 @@ function connect() {
   ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
   ws.binaryType = "arraybuffer";
   ws.onopen = () => { $("connection").textContent = "connected"; $("connection").className = "conn up";
-                      if (audio.ctx) send({type: "audio", enabled: true}); };
+                      if (audio.ctx) send({type: "audio", enabled: true}); };  // motion: asked for in onHello
   ws.onclose = () => { $("connection").textContent = "offline"; $("connection").className = "conn";
                        setTimeout(connect, 1000); };
   ws.onmessage = (m) => (typeof m.data === "string" ? onEvent(JSON.parse(m.data)) : onBinary(m.data));
@@ -53,11 +53,13 @@ function onBinary(buf) {
   const kind = view.getUint8(0), index = view.getUint16(2, true), step = view.getUint32(4, true);
   if (kind === KIND_FRAME) onFrame(step, index, new Blob([new Uint8Array(buf, 8)], {type: "image/jpeg"}));
   else if (kind === KIND_AUDIO) onAudio(step, new Int16Array(buf, 8));
+  else if (kind === KIND_MOTION && avatar.player) avatar.player.push(buf, 8);
 }
 
 // ---- run state and controls -----------------------------------------------------------------------------
 function onHello(e) {
   dash.pipeline = e.pipeline;
+  if (e.render_mode === "browser") startAvatar();
   $("mic").hidden = !e.browser_mic;
   if (mic.on) send({type: "mic", enabled: true});  // reconnected: claim the microphone again
   latency = []; turnHistory = []; chartDirty = stripDirty = true;
@@ -117,6 +119,28 @@ function showFrames() {
   playAudioUpTo(step);
 }
 
+// ---- the avatar drawn here (render.mode: browser; static/avatar.js) ---------------------------------------
+// Read by the tests: fps (measured over the last second), draws, received (motion frames), shownStep, ready.
+const avatar = window.ecasAvatar = {fps: 0, draws: 0, received: 0, shownStep: -1, ready: false, error: "",
+                                    player: null, loading: false};
+
+function startAvatar() {
+  send({type: "motion", enabled: true});
+  if (avatar.loading) return;
+  avatar.loading = true;
+  $("video").hidden = true;
+  $("avatar").hidden = false;
+  import("/static/avatar.js")
+    .then((m) => m.start($("avatar"), onAvatarStep))
+    .catch((err) => { avatar.error = String(err && err.message || err);
+                      $("frameinfo").textContent = `avatar: ${avatar.error}`; });
+}
+
+function onAvatarStep(step) {
+  $("frameinfo").textContent = `step ${step} · drawn here · ${avatar.fps.toFixed(0)} fps`;
+  playAudioUpTo(step);
+}
+
 // ---- the agent's voice, synced to the video by step ------------------------------------------------------
 // A step's audio is held until that step's frame is on screen, then scheduled right after the audio
 // already playing; a step whose frames were dropped plays with the next frame shown.
@@ -153,7 +177,7 @@ function playAudioUpTo(step) {
     const at = Math.max(now + 0.01, audio.playhead);
     src.start(at);
     audio.playhead = at + buffer.duration;
-    audio.played = s; dash.audioSteps += 1;
+    audio.played = s; dash.audioSteps += 1; dash.audioLastStep = s;
   }
 }
 

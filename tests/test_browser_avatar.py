@@ -1,0 +1,95 @@
+"""render.mode browser: the server draws nothing for the dashboard, and the page draws the avatar with three.js
+from the motion stream, in real headless Chromium (software WebGL, loopback only)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from agent.dashboard.browser import HeadlessChromium, find_chromium
+from agent.dashboard.server import THREE_DIR
+from ecas.core.component import RunContext
+from ecas.core.config import ConfigError
+from ecas.core.messages import GestureStep
+from render.config import RenderConfig
+from render.process import RenderComponent
+from tests.test_dashboard import _drive_page, _press_stop
+from tests.test_runtime import launch, leftovers
+
+AVATAR_STATE = """(() => {
+  const a = window.ecasAvatar, s = a.player ? a.player.sample() : {};
+  return {fps: a.fps, draws: a.draws, received: a.received, shownStep: a.shownStep, ready: a.ready, error: a.error,
+          different: s.different, checksum: s.checksum, pixels: s.pixels, audioSteps: window.dashboard.audioSteps,
+          audioLastStep: window.dashboard.audioLastStep, videoHidden: document.getElementById('video').hidden,
+          canvasShown: !document.getElementById('avatar').hidden};
+})()"""
+
+
+def test_render_mode_is_validated():
+    assert RenderConfig().mode == "server"
+    with pytest.raises(ConfigError, match="render.mode"):
+        RenderConfig(mode="client")
+
+
+def test_browser_mode_renders_no_frame_and_keeps_the_latency_stamps(tmp_path):
+    component = RenderComponent(RenderConfig(mode="browser"), RunContext(tmp_path, live=True, seed=0, session="s"))
+    assert component.view is None  # no GL context at all
+    msg = GestureStep(
+        poses=np.zeros((2, 55, 3), np.float32),
+        trans=np.zeros((2, 3), np.float32),
+        expressions=np.zeros((2, 100), np.float32),
+        tokens=np.zeros(20, np.int32),
+    )
+    frames = component.handle(msg)
+    assert [f.frame_index for f in frames] == [0, 1]
+    assert all(f.encoding == "none" and f.image.size == 0 for f in frames)
+    assert component.counters()["rendered_frames"] == 0
+    component.close()
+
+
+needs_browser = pytest.mark.skipif(
+    find_chromium() is None or not THREE_DIR.is_dir(),
+    reason="needs Chromium (scripts/install_system.sh) and three.js (`npm ci`)",
+)
+
+
+@needs_browser
+def test_the_page_draws_the_avatar_moving_with_the_stream_and_the_voice(tmp_path):
+    wav = tmp_path / "talk.wav"
+    t = np.arange(16000 * 30) / 16000
+    sf.write(wav, (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), 16000)
+    report = tmp_path / "run"
+    args = ["--replay", str(wav), "--set", "render.mode=browser", "--set", "dashboard.wait_for_start=true"]
+    proc = launch(args, report)
+    (rest, early, later), code, output = _drive_page(proc, report, _watch, finish_timeout_s=120, url_timeout_s=300)
+    assert code == 0, output
+    assert leftovers(proc.pid) == []
+    assert rest["ready"] and not rest["error"] and rest["videoHidden"] and rest["canvasShown"]
+    assert rest["different"] > 0.02 * rest["pixels"]  # the avatar in its rest pose covers the canvas
+    for state in (early, later):
+        assert state["different"] > 0.02 * state["pixels"] and state["fps"] > 0
+    # tests.components.WaveGesture swings the right arm with the step: the image changes as the motion does
+    assert len({rest["checksum"], early["checksum"], later["checksum"]}) == 3
+    assert later["shownStep"] > early["shownStep"] >= 10 and later["received"] > early["received"]
+    # the voice follows the avatar: each step's audio is played as the step is shown
+    assert later["audioSteps"] > 0 and abs(later["audioLastStep"] - later["shownStep"]) <= 3
+    print(json.dumps({"fps": later["fps"], "draws": later["draws"]}))
+
+
+async def _watch(url: str) -> tuple[dict, dict, dict]:
+    async with HeadlessChromium(url, 1280, 1000) as page:
+        await page.wait_for("window.ecasAvatar && window.ecasAvatar.ready && window.ecasAvatar.draws > 2", 90)
+        await page.wait_for("window.dashboard.phase === 'ready'", timeout_s=90)
+        rest = await page.evaluate(AVATAR_STATE)
+        await page.evaluate("document.getElementById('start').click()")
+        await page.wait_for("window.ecasAvatar.shownStep >= 10", timeout_s=60)
+        early = await page.evaluate(AVATAR_STATE)
+        await page.wait_for(f"window.ecasAvatar.shownStep >= {early['shownStep'] + 15}", timeout_s=60)
+        await asyncio.sleep(0.1)
+        later = await page.evaluate(AVATAR_STATE)
+        await _press_stop(page)
+        return rest, early, later
