@@ -12,9 +12,10 @@ import soundfile as sf
 
 from agent.dashboard.browser import HeadlessChromium, find_chromium
 from agent.dashboard.server import THREE_DIR
+from agent.latency import DISPLAY_KEY, LatencyRecorder
 from ecas.core.component import RunContext
 from ecas.core.config import ConfigError
-from ecas.core.messages import GestureStep
+from ecas.core.messages import GestureStep, Metrics
 from render.config import RenderConfig
 from render.process import RenderComponent
 from tests.test_dashboard import _drive_page, _press_stop
@@ -24,7 +25,8 @@ AVATAR_STATE = """(() => {
   const a = window.ecasAvatar, s = a.player ? a.player.sample() : {};
   return {fps: a.fps, draws: a.draws, received: a.received, shownStep: a.shownStep, ready: a.ready, error: a.error,
           different: s.different, checksum: s.checksum, pixels: s.pixels, audioSteps: window.dashboard.audioSteps,
-          audioLastStep: window.dashboard.audioLastStep, videoHidden: document.getElementById('video').hidden,
+          audioLastStep: window.dashboard.audioLastStep, displaySamples: window.dashboard.displaySamples,
+          clockRttMs: window.dashboard.clockRttMs, videoHidden: document.getElementById('video').hidden,
           canvasShown: !document.getElementById('avatar').hidden};
 })()"""
 
@@ -49,6 +51,17 @@ def test_browser_mode_renders_no_frame_and_keeps_the_latency_stamps(tmp_path):
     assert all(f.encoding == "none" and f.image.size == 0 for f in frames)
     assert component.counters()["rendered_frames"] == 0
     component.close()
+
+
+def test_display_samples_are_summarised_apart_from_the_sink_latency():
+    recorder = LatencyRecorder(("io", "render"))
+    for step in (3, 4, 6, 7):
+        recorder.add(Metrics(step=step, values={DISPLAY_KEY: 100.0 + step, "clock_rtt_ms": 0.5}), {})
+    recorder.add(Metrics(step=7, values={DISPLAY_KEY: 999.0, "clock_rtt_ms": 0.5}), {})  # a second page: ignored
+    assert recorder.e2e_ms == []
+    display = recorder.summary({}, {})["display"]
+    assert display["steps_shown"] == 4 and display["steps_not_shown"] == 1  # step 5
+    assert display["end_to_end_ms"]["max"] == 107.0 and display["clock_rtt_ms"]["p50"] == 0.5
 
 
 needs_browser = pytest.mark.skipif(
@@ -77,7 +90,13 @@ def test_the_page_draws_the_avatar_moving_with_the_stream_and_the_voice(tmp_path
     assert later["shownStep"] > early["shownStep"] >= 10 and later["received"] > early["received"]
     # the voice follows the avatar: each step's audio is played as the step is shown
     assert later["audioSteps"] > 0 and abs(later["audioLastStep"] - later["shownStep"]) <= 3
-    print(json.dumps({"fps": later["fps"], "draws": later["draws"]}))
+    # latency to the display: the page reported the steps it showed; the run's latency.json has them
+    assert later["displaySamples"] > 0 and 0 <= later["clockRttMs"] < 1000
+    display = json.loads((report / "latency.json").read_text())["display"]
+    span = display["steps_shown"] + display["steps_not_shown"]  # a page drawing < 12.5 fps skips steps
+    assert display["steps_shown"] >= 10 and span >= later["shownStep"] - early["shownStep"]
+    assert 0 < display["end_to_end_ms"]["p50"] < 10_000
+    print(json.dumps({"fps": later["fps"], "draws": later["draws"], "display": display}))
 
 
 async def _watch(url: str) -> tuple[dict, dict, dict]:

@@ -9,6 +9,7 @@ START / STOP, and heartbeats. It exits on the supervisor's STOP, on SIGTERM, or 
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 import os
 import signal
@@ -34,6 +35,7 @@ from agent.dashboard.events import (
     pcm_int16,
     vad_event,
 )
+from agent.latency import DISPLAY_KEY
 from agent.process import SupervisorWatch, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
@@ -59,6 +61,7 @@ LIVE_QUEUE_MESSAGES = 64  # data messages waiting here; past it the oldest frame
 KEPT_TOPICS = ("metrics", "dialogue.step", "gesture.step")  # ... never the words, speech, motion and latencies
 POLL_S = 0.01
 COUNTERS_EVERY_S = 0.5
+ORIGINS_KEPT = 250  # steps whose capture time waits for a page's display report (20 s)
 URL_FILE = "dashboard.url"
 EXIT_STARTUP_FAILED = 3
 
@@ -99,6 +102,8 @@ class DashboardBridge:
         self.frames_in = 0
         self.bad_frames = 0
         self.motion_steps = 0
+        self.origins: collections.OrderedDict[int, int] = collections.OrderedDict()  # step -> capture time, here
+        self.displayed_steps = 0
 
     def snapshot(self) -> list[dict]:
         return [
@@ -117,6 +122,7 @@ class DashboardBridge:
             "decode_errors": self.sub.decode_errors,
             "bad_frames": self.bad_frames,
             "motion_steps": self.motion_steps,
+            "displayed_steps": self.displayed_steps,
             "mic_chunks": self.mic_chunks,
             **(self.hub.counters() if self.hub else {}),
         }
@@ -161,18 +167,35 @@ class DashboardBridge:
     def _on_motion(self, msg: GestureStep) -> None:
         """A step's motion to the pages and clients that asked for it, its times on this host's clock."""
         self.motion_steps += 1
+        offsets = self.clock.offsets_ns()
+        origin = msg.t_origin_ns - offsets.get(self.pipeline[0], 0) if msg.t_origin_ns else 0
+        if origin:
+            self.origins[msg.step] = origin
+            while len(self.origins) > ORIGINS_KEPT:
+                self.origins.popitem(last=False)
         if not self.hub.motion_pages:
             return
-        offsets = self.clock.offsets_ns()
         packet = motion_packet(
             msg.step,
             msg.poses,
             msg.trans,
             msg.expressions,
-            t_origin_ns=msg.t_origin_ns - offsets.get(self.pipeline[0], 0) if msg.t_origin_ns else 0,
+            t_origin_ns=origin,
             t_motion_ns=msg.stamps.get("gesture", msg.t_ns) - offsets.get("gesture", 0),
         )
         self.hub.broadcast_motion(pack_binary(BINARY_MOTION, msg.step, 0, encode(packet)))
+
+    def on_displayed(self, step: int, t_display_ns: float, clock_rtt_ms: float) -> None:
+        """A page showed `step`: its latency from capture to the display, to the page's chart and, as a Metrics
+        sample, to the run's latency.json (the first page's report of a step counts)."""
+        origin = self.origins.pop(step, None)
+        if origin is None:
+            return
+        e2e_ms = round((t_display_ns - origin) / 1e6, 2)
+        self.displayed_steps += 1
+        self.hub.broadcast({"type": "display_latency", "step": step, "e2e_ms": e2e_ms, "clock_rtt_ms": clock_rtt_ms})
+        values = {DISPLAY_KEY: e2e_ms, "clock_rtt_ms": round(clock_rtt_ms, 3)}
+        self.pub.send(Metrics(session=self.session, step=step, t_origin_ns=origin, values=values))
 
     def _on_frame(self, msg: RenderFrame) -> None:
         self.frames_in += 1
@@ -209,7 +232,9 @@ async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
     from agent.dashboard.server import Hub, make_app, start_server
 
     bridge = DashboardBridge(launch)
-    bridge.hub = Hub(bridge.snapshot, bridge.command, bridge.send_mic if bridge.cfg.browser_mic else None)
+    bridge.hub = Hub(
+        bridge.snapshot, bridge.command, bridge.send_mic if bridge.cfg.browser_mic else None, bridge.on_displayed
+    )
     supervisor.stop = lambda: setattr(bridge, "stopping", True)
     loop = asyncio.get_running_loop()
     loop.add_signal_handler(signal.SIGTERM, supervisor.stop)

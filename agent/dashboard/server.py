@@ -110,9 +110,11 @@ class Hub:
         snapshot: Callable[[], Iterable[Event]],
         on_command: Callable[[str], None],
         on_mic: Callable[[bytes], None] | None = None,
+        on_displayed: Callable[[int, float, float], None] | None = None,
     ):
         self.snapshot = snapshot
         self.on_command = on_command
+        self.on_displayed = on_displayed  # (step, its display time on this host's monotonic clock ns, clock RTT ms)
         self.on_mic = on_mic  # None: no browser microphone in this run
         self.mic_page: Page | None = None
         self.pages: set[Page] = set()
@@ -233,10 +235,23 @@ class Hub:
             page.wants_audio = bool(msg.get("enabled"))
         elif msg.get("type") == "motion":
             page.wants_motion = bool(msg.get("enabled"))
+        elif msg.get("type") == "clock" and isinstance(msg.get("t_page_ms"), (int, float)):
+            # the page's NTP-style probe: it keeps the offset of its fastest round trip
+            reply = {"type": "clock", "t_page_ms": msg["t_page_ms"], "t_server_ns": time.monotonic_ns()}
+            page.push_event(json.dumps(reply))
+        elif msg.get("type") == "displayed":
+            self._on_displayed(msg)
         elif msg.get("type") == "mic":
             self._claim_mic(page, bool(msg.get("enabled")))
         else:
             log.warning("ignored an unknown page message: %.80r", text)
+
+    def _on_displayed(self, msg: dict) -> None:
+        """A page showed a step: `t_server_ns` is its display time on this host's clock (from its clock probes)."""
+        step, t_ns, rtt = msg.get("step"), msg.get("t_server_ns"), msg.get("clock_rtt_ms")
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (step, t_ns, rtt))
+        if self.on_displayed is not None and numbers and step >= 0:
+            self.on_displayed(int(step), float(t_ns), float(rtt))
 
     def _claim_mic(self, page: Page, enabled: bool) -> None:
         if not enabled:
