@@ -24,6 +24,7 @@ from tests.test_runtime import launch, leftovers
 AVATAR_STATE = """(() => {
   const a = window.ecasAvatar, s = a.player ? a.player.sample() : {};
   return {fps: a.fps, draws: a.draws, received: a.received, shownStep: a.shownStep, ready: a.ready, error: a.error,
+          kind: a.kind,
           different: s.different, checksum: s.checksum, pixels: s.pixels, audioSteps: window.dashboard.audioSteps,
           audioLastStep: window.dashboard.audioLastStep, displaySamples: window.dashboard.displaySamples,
           clockRttMs: window.dashboard.clockRttMs, videoHidden: document.getElementById('video').hidden,
@@ -112,3 +113,27 @@ async def _watch(url: str) -> tuple[dict, dict, dict]:
         later = await page.evaluate(AVATAR_STATE)
         await _press_stop(page)
         return rest, early, later
+
+
+@needs_browser
+@pytest.mark.parametrize("kind", ("vrm0", "mixamo"))
+def test_a_users_rig_loads_and_moves_in_the_page(tmp_path, kind):
+    """launch.py --avatar FILE with a VRM 0.x (facing -z) or a Mixamo-style rig (A-pose, scaled armature) the
+    project builds: the page draws it, its bones follow the stream."""
+    from render.rig_build import build_rig_glb
+
+    rig = tmp_path / f"rig.{'vrm' if kind == 'vrm0' else 'glb'}"
+    rig.write_bytes(build_rig_glb(kind))
+    wav = tmp_path / "talk.wav"
+    t = np.arange(16000 * 20) / 16000
+    sf.write(wav, (0.3 * np.sin(2 * np.pi * 220 * t)).astype(np.float32), 16000)
+    report = tmp_path / "run"
+    args = ["--replay", str(wav), "--avatar", str(rig), "--set", "dashboard.wait_for_start=true"]
+    proc = launch(args, report)
+    (rest, early, later), code, output = _drive_page(proc, report, _watch, finish_timeout_s=120, url_timeout_s=300)
+    assert code == 0, output
+    assert rest["ready"] and not rest["error"] and rest["kind"] == kind
+    for state in (rest, early, later):
+        assert state["different"] > 0.02 * state["pixels"]
+    assert len({rest["checksum"], early["checksum"], later["checksum"]}) == 3
+    assert later["shownStep"] > early["shownStep"] and later["fps"] > 0

@@ -1,6 +1,7 @@
-"""The GLB the page draws in `render.mode: browser`: the built-in avatar, written once by render.gltf and kept in
-the user's cache (`$XDG_CACHE_HOME/ecas`, else `~/.cache/ecas`) under a hash of the code that makes it, so a
-changed avatar is rebuilt and an unchanged one costs nothing (building it takes a few seconds)."""
+"""The GLB the page draws in `render.mode: browser` and its retargeting spec: the user's rig (`render.avatar`,
+`--avatar FILE`), or the built-in avatar, written once by render.gltf and kept in the user's cache
+(`$XDG_CACHE_HOME/ecas`, else `~/.cache/ecas`) under a hash of the code that makes it, so a changed avatar is
+rebuilt and an unchanged one costs nothing (building it takes a few seconds)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import render.arkit
 import render.avatar
 import render.gltf
 import render.mesh_parts
+from render.rig import load_rig
 
 SOURCES = (render.avatar, render.mesh_parts, render.gltf, render.arkit, gesture.body.skeleton)
 
@@ -34,3 +36,19 @@ def cached_avatar_glb() -> Path:
             tmp.write(data)
         os.replace(tmp.name, path)  # atomic: two processes may build it at once
     return path
+
+
+class AvatarFiles:
+    """The page's `/avatar.glb` and `/avatar.json`, found (and the spec computed) on first use."""
+
+    def __init__(self, avatar: str | None = None) -> None:
+        self.avatar = Path(avatar) if avatar else None
+        self._spec: dict | None = None
+
+    def glb(self) -> Path:
+        return self.avatar if self.avatar else cached_avatar_glb()
+
+    def spec(self) -> dict:
+        if self._spec is None:
+            self._spec = load_rig(self.glb()).spec()
+        return self._spec

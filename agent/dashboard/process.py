@@ -240,7 +240,7 @@ async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
     loop.add_signal_handler(signal.SIGTERM, supervisor.stop)
     cfg = launch.app.dashboard
     tls = (cfg.tls_cert, cfg.tls_key) if cfg.tls_cert else None
-    runner, port = await start_server(make_app(bridge.hub), cfg.host, cfg.port, tls)
+    runner, port = await start_server(make_app(bridge.hub, launch.app.render.avatar), cfg.host, cfg.port, tls)
     url = page_url(cfg.host, port, tls is not None)
     (launch.run.run_dir / URL_FILE).write_text(url + "\n")
     log.info("serving %s", url)

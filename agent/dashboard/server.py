@@ -34,6 +34,7 @@ MAX_PENDING_AUDIO = 25  # steps of agent audio (2 s)
 MAX_PENDING_FRAMES = 4  # the render stage publishes a step's two frames together
 MAX_PENDING_MOTION = 50  # steps of motion (4 s); a page further behind skips the oldest (counted)
 COMMANDS = ("start", "stop")
+AVATAR_FILES = web.AppKey("avatar_files", object)
 
 
 class Page:
@@ -280,8 +281,12 @@ def same_origin(request: web.Request) -> bool:
     return origin is None or urlsplit(origin).netloc == request.host
 
 
-def make_app(hub: Hub) -> web.Application:
+def make_app(hub: Hub, avatar: str | None = None) -> web.Application:
+    """The dashboard's routes; `avatar` is the user's rig the page draws in render.mode browser (None: ours)."""
+    from agent.dashboard.avatar_file import AvatarFiles
+
     app = web.Application()
+    app[AVATAR_FILES] = AvatarFiles(avatar)
 
     async def index(_request: web.Request) -> web.FileResponse:
         return web.FileResponse(STATIC_DIR / "index.html")
@@ -293,6 +298,7 @@ def make_app(hub: Hub) -> web.Application:
     app.router.add_get("/state.json", state)
     app.router.add_get("/ws", hub.websocket)
     app.router.add_get("/avatar.glb", avatar_glb)
+    app.router.add_get("/avatar.json", avatar_spec)
     app.router.add_static("/static/", STATIC_DIR)
     if THREE_DIR.is_dir():
         app.router.add_static("/vendor/three/", THREE_DIR)
@@ -301,12 +307,16 @@ def make_app(hub: Hub) -> web.Application:
     return app
 
 
-async def avatar_glb(_request: web.Request) -> web.Response:
-    """The built-in avatar as a skinned GLB for the page's three.js (built once, then cached on disk)."""
-    from agent.dashboard.avatar_file import cached_avatar_glb
-
-    path = await asyncio.get_running_loop().run_in_executor(None, cached_avatar_glb)
+async def avatar_glb(request: web.Request) -> web.Response:
+    """The avatar the page draws: the user's rig, or ours as a skinned GLB (built once, then cached on disk)."""
+    path = await asyncio.get_running_loop().run_in_executor(None, request.app[AVATAR_FILES].glb)
     return web.FileResponse(path, headers={"Content-Type": "model/gltf-binary"})
+
+
+async def avatar_spec(request: web.Request) -> web.Response:
+    """How the page drives the avatar's bones and face from SMPL-X motion (render.rig.Rig.spec)."""
+    spec = await asyncio.get_running_loop().run_in_executor(None, request.app[AVATAR_FILES].spec)
+    return web.json_response(spec)
 
 
 async def start_server(

@@ -1,5 +1,6 @@
 // The avatar drawn in the page (render.mode: browser): three.js (npm, served from /vendor/three/) draws the
-// skinned GLB at /avatar.glb, driven by the motion stream (docs/motion_stream.md) at the display's rate.
+// skinned GLB at /avatar.glb (the built-in avatar, or the user's VRM / Mixamo rig: --avatar), driven by the
+// motion stream (docs/motion_stream.md) at the display's rate through the retargeting spec at /avatar.json.
 //
 // Clock: the page plays motion frames on its own clock, about TARGET_LAG frames behind the newest one received,
 // and interpolates between the two 25 fps frames around it (slerp of the joints' rotations, linear translation
@@ -17,6 +18,7 @@ const TARGET_LAG = 1.5;   // frames behind the newest: one to interpolate toward
 const MAX_LAG = 8;        // further behind than this (320 ms): jump
 const KEEP_FRAMES = 50;   // frames kept behind the playhead
 const BACKGROUND = 0x1b2026;
+const FLOOR_TRANS_Y = 1.3;  // BEAT2's translation that puts SMPL-X's feet on the floor: the rest pose stands there
 const CAMERA_OFFSET = [0, 0.05, 3.9];  // from the tracked pelvis (metres): the whole body in a 30° view
 const CAMERA_TIME_MS = 400;           // the camera follows the pelvis with this time constant
 
@@ -89,32 +91,54 @@ export class AvatarPlayer {
     this._q1 = new THREE.Quaternion();
   }
 
-  async load(url) {
+  /** Load the GLB and its retargeting spec (render.rig.Rig.spec: the built-in avatar or the user's rig). */
+  async load(url, specUrl) {
     this.renderer = new THREE.WebGLRenderer({canvas: this.canvas, antialias: false, preserveDrawingBuffer: true});
     this.renderer.setPixelRatio(1);
     this.renderer.setSize(this.canvas.width, this.canvas.height, false);
     this.renderer.outputColorSpace = THREE.SRGBColorSpace;
     this.scene = new THREE.Scene();
     this.scene.background = new THREE.Color(BACKGROUND);
-    this.camera = new THREE.PerspectiveCamera(30, this.canvas.width / this.canvas.height, 0.05, 20);
+    this.camera = new THREE.PerspectiveCamera(30, this.canvas.width / this.canvas.height, 0.05, 50);
     this.target = null;  // the camera's smoothed pelvis position
     this.scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 1.6));
     const sun = new THREE.DirectionalLight(0xffffff, 1.8);
     sun.position.set(1, 2, 3);
     this.scene.add(sun);
-    const gltf = await new GLTFLoader().loadAsync(url);
+    const [gltf, spec] = await Promise.all([
+      new GLTFLoader().loadAsync(url),
+      fetch(specUrl).then((r) => { if (!r.ok) throw new Error(`${specUrl}: ${r.status}`); return r.json(); }),
+    ]);
     this.scene.add(gltf.scene);
-    this.bones = JOINT_NAMES.map((name) => gltf.scene.getObjectByName(name));
-    if (this.bones.some((b) => !b)) throw new Error(`${url}: a bone of the SMPL-X skeleton is missing`);
-    this.restRoot = this.bones[0].position.clone();
-    this.faces = [];
+    gltf.scene.updateMatrixWorld(true);
+    const byNode = new Map();
     gltf.scene.traverse((o) => {
-      if (o.isMesh) o.frustumCulled = false;  // the skinned mesh moves away from its bind-pose bounds
-      if (o.isMesh && o.morphTargetDictionary) {
-        this.faces.push({mesh: o, index: ARKIT_NAMES.map((n) => o.morphTargetDictionary[n] ?? -1)});
-      }
+      const a = gltf.parser.associations.get(o);
+      if (a && a.nodes !== undefined && !byNode.has(a.nodes)) byNode.set(a.nodes, o);
+      if (o.isMesh) o.frustumCulled = false;  // a skinned mesh moves away from its bind-pose bounds
     });
-    this.bones[0].position.copy(this.restRoot).add(new THREE.Vector3(0, 1.3, 0));
+    const meshesOf = (o) => (o.isMesh ? [o] : o.children.filter((c) => c.isMesh));
+    this.spec = spec;
+    this.kind = spec.kind;
+    this.bones = spec.bones.map((b) => ({
+      object: byNode.get(b.node), joint: b.joint, ancestor: b.ancestor,
+      k: new THREE.Quaternion().fromArray(b.k), between: new THREE.Quaternion().fromArray(b.between),
+    }));
+    if (this.bones.some((b) => !b.object)) throw new Error(`${url}: a bone of the rig's spec is not in the file`);
+    this.hips = byNode.get(spec.hips.node);
+    this.hipsRest = new THREE.Vector3().fromArray(spec.hips.rest_world);
+    this.hipsParentInverse = new THREE.Matrix4().fromArray(spec.hips.parent_inverse);
+    this.face = spec.face.map((f) => ({meshes: meshesOf(byNode.get(f.node) || new THREE.Object3D()),
+                                       target: f.target, terms: f.terms}));
+    this.yaw = new THREE.Quaternion().setFromAxisAngle(new THREE.Vector3(0, 1, 0), spec.yaw_deg * Math.PI / 180);
+    this.yawInverse = this.yaw.clone().invert();
+    this.global = JOINT_NAMES.map(() => new THREE.Quaternion());
+    this.local = JOINT_NAMES.map(() => new THREE.Quaternion());
+    this.posed = this.bones.map(() => new THREE.Quaternion());
+    this.rest = {q: new Float32Array(JOINTS * 4).fill(0), t: new Float32Array([0, FLOOR_TRANS_Y, 0]),
+                 w: new Float32Array(ARKIT)};
+    for (let j = 0; j < JOINTS; j++) this.rest.q[4 * j + 3] = 1;
+    this.pose(this.rest, this.rest, 0);  // SMPL-X's rest pose until the motion arrives
     this.stats.ready = true;
   }
 
@@ -156,35 +180,49 @@ export class AvatarPlayer {
     return true;
   }
 
+  /** Interpolate two frames and drive the rig: SMPL-X's global rotations, then each bone's world rotation
+   *  W' = F G_j F^-1 K_b turned into its local rotation under its parent's posed world rotation. */
   pose(f0, f1, a) {
+    const parents = this.spec.parents;
     for (let j = 0; j < JOINTS; j++) {
       this._q0.fromArray(f0.q, 4 * j);
       this._q1.fromArray(f1.q, 4 * j);
-      this.bones[j].quaternion.slerpQuaternions(this._q0, this._q1, a);
+      this.local[j].slerpQuaternions(this._q0, this._q1, a);
+      if (parents[j] < 0) this.global[j].copy(this.local[j]);
+      else this.global[j].multiplyQuaternions(this.global[parents[j]], this.local[j]);
     }
+    this.bones.forEach((b, k) => {
+      const w = this.posed[k].copy(this.yaw).multiply(this.global[b.joint]).multiply(this.yawInverse).multiply(b.k);
+      const parentWorld = b.ancestor >= 0 ? this._q0.multiplyQuaternions(this.posed[b.ancestor], b.between)
+        : this._q0.copy(b.between);
+      b.object.quaternion.copy(parentWorld.invert().multiply(w));
+    });
     const t = [0, 1, 2].map((i) => f0.t[i] + a * (f1.t[i] - f0.t[i]));
-    this.bones[0].position.set(this.restRoot.x + t[0], this.restRoot.y + t[1], this.restRoot.z + t[2]);
-    for (const {mesh, index} of this.faces) {
-      for (let i = 0; i < ARKIT; i++) {
-        if (index[i] >= 0) mesh.morphTargetInfluences[index[i]] = f0.w[i] + a * (f1.w[i] - f0.w[i]);
-      }
+    const shift = new THREE.Vector3(t[0], t[1] - this.spec.hips.floor_trans_y, t[2]).applyQuaternion(this.yaw);
+    this.hips.position.copy(shift.multiplyScalar(this.spec.hips.scale).add(this.hipsRest))
+      .applyMatrix4(this.hipsParentInverse);
+    for (const {meshes, target, terms} of this.face) {
+      let value = 0;
+      for (const [i, gain] of terms) value += gain * (f0.w[i] + a * (f1.w[i] - f0.w[i]));
+      value = Math.min(1, Math.max(0, value));
+      for (const mesh of meshes) if (mesh.morphTargetInfluences) mesh.morphTargetInfluences[target] = value;
     }
   }
 
   /** Follow the pelvis (a causal low-pass), as the server's camera rig does. */
   track(now) {
     const pelvis = new THREE.Vector3();
-    this.bones[0].getWorldPosition(pelvis);
+    this.hips.getWorldPosition(pelvis);
     if (this.target === null) this.target = pelvis.clone();
     else this.target.lerp(pelvis, 1 - Math.exp(-(now - (this.lastDraw ?? now)) / CAMERA_TIME_MS));
     this.lastDraw = now;
-    this.camera.position.set(...CAMERA_OFFSET).add(this.target);
+    this.camera.position.set(...CAMERA_OFFSET).multiplyScalar(this.spec.hips.scale).add(this.target);
     this.camera.lookAt(this.target);
   }
 
   draw(now) {
     this.advance(now);
-    this.bones[0].parent.updateMatrixWorld(true);
+    this.scene.updateMatrixWorld(true);
     this.track(now);
     this.renderer.render(this.scene, this.camera);
     this.stats.draws += 1;
@@ -213,19 +251,19 @@ export class AvatarPlayer {
 }
 
 /** Start drawing on `canvas`; returns the player (also window.ecasAvatar's source of numbers). */
-export async function start(canvas, onStep, url = "/avatar.glb") {
+export async function start(canvas, onStep, url = "/avatar.glb", specUrl = "/avatar.json") {
   const player = new AvatarPlayer(canvas, onStep);
   const state = window.ecasAvatar;
   state.player = player;
   try {
-    await player.load(url);
+    await player.load(url, specUrl);
   } catch (err) {
     state.error = String(err && err.message || err);
     throw err;
   }
   const loop = (now) => {
     player.draw(now);
-    Object.assign(state, player.stats, {shownStep: player.shownStep});
+    Object.assign(state, player.stats, {shownStep: player.shownStep, kind: player.kind});
     requestAnimationFrame(loop);
   };
   requestAnimationFrame(loop);
