@@ -137,3 +137,46 @@ def test_a_users_rig_loads_and_moves_in_the_page(tmp_path, kind):
         assert state["different"] > 0.02 * state["pixels"]
     assert len({rest["checksum"], early["checksum"], later["checksum"]}) == 3
     assert later["shownStep"] > early["shownStep"] and later["fps"] > 0
+
+
+async def _page_poses(avatar: str | None, poses: np.ndarray, trans: np.ndarray) -> dict:
+    """The dashboard's server alone (no run) with `avatar`; the page poses one frame with its three.js code and
+    returns each driven node's world position."""
+    from agent.dashboard.events import hello_event
+    from agent.dashboard.server import Hub, make_app, start_server
+
+    def snapshot():
+        return [hello_event(("io",), True, "s", False, render_mode="browser")]
+
+    runner, port = await start_server(make_app(Hub(snapshot, lambda _c: None), avatar), "127.0.0.1", 0)
+    try:
+        async with HeadlessChromium(f"http://127.0.0.1:{port}/", 800, 600) as page:
+            await page.wait_for("window.ecasAvatar && window.ecasAvatar.ready", timeout_s=120)
+            args = json.dumps([poses.ravel().tolist(), trans.tolist(), [0.0] * 52])
+            return await page.evaluate(f"window.ecasAvatar.player.poseForTest(...{args})")
+    finally:
+        await runner.cleanup()
+
+
+@needs_browser
+def test_the_pages_three_js_retargeting_equals_the_numpy_reference(tmp_path):
+    """Same pose, four avatars (ours, VRM 1.0, VRM 0.x, Mixamo-style): the bones' world positions in the page
+    equal render.rig.retarget's."""
+    from render.rig import load_rig, retarget
+    from render.rig_build import build_rig_glb
+
+    rng = np.random.default_rng(5)
+    poses, trans = rng.normal(0, 0.4, (55, 3)), np.array([0.1, 1.25, 0.2])
+    for kind in ("ours", "vrm1", "vrm0", "mixamo"):
+        path = None
+        if kind != "ours":
+            path = tmp_path / f"{kind}.glb"
+            path.write_bytes(build_rig_glb(kind))
+        positions = asyncio.run(_page_poses(str(path) if path else None, poses, trans))
+        if path is None:
+            from agent.dashboard.avatar_file import cached_avatar_glb
+
+            path = cached_avatar_glb()
+        expected = retarget(load_rig(path), poses, trans)
+        errors = [np.linalg.norm(np.array(p) - expected[int(n)][:3, 3]) for n, p in positions.items()]
+        assert len(errors) >= 54 and max(errors) < 1e-4, (kind, max(errors))

@@ -216,7 +216,8 @@ export class AvatarPlayer {
     if (this.target === null) this.target = pelvis.clone();
     else this.target.lerp(pelvis, 1 - Math.exp(-(now - (this.lastDraw ?? now)) / CAMERA_TIME_MS));
     this.lastDraw = now;
-    this.camera.position.set(...CAMERA_OFFSET).multiplyScalar(this.spec.hips.scale).add(this.target);
+    this.camera.position.set(...CAMERA_OFFSET).multiplyScalar(this.spec.hips.scale).applyQuaternion(this.yaw)
+      .add(this.target);  // in front of the rig: a VRM 0.x model faces -z
     this.camera.lookAt(this.target);
   }
 
@@ -230,6 +231,19 @@ export class AvatarPlayer {
     while (this.fpsWindow.length && this.fpsWindow[0] < now - 1000) this.fpsWindow.shift();
     this.stats.fps = this.fpsWindow.length > 1
       ? 1000 * (this.fpsWindow.length - 1) / (now - this.fpsWindow[0]) : 0;
+  }
+
+  /** Test hook: pose one frame given as axis-angle (55 * 3), translation (3) and ARKit weights (52); returns each
+   *  driven node's world position after the pose. */
+  poseForTest(axisAngles, trans, weights) {
+    const q = new Float32Array(JOINTS * 4);
+    for (let j = 0; j < JOINTS; j++) axisAngleToQuaternion(axisAngles, 3 * j, q, 4 * j);
+    const frame = {q, t: Float32Array.from(trans), w: Float32Array.from(weights)};
+    this.pose(frame, frame, 0);
+    this.scene.updateMatrixWorld(true);
+    const out = {};
+    this.spec.bones.forEach((b, k) => { out[b.node] = this.bones[k].object.getWorldPosition(new THREE.Vector3()).toArray(); });
+    return out;
   }
 
   /** Pixels that differ from the background, and a checksum of the image (tests compare two). */

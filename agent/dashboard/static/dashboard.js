@@ -380,10 +380,10 @@ function drawChart() {
     const pct = (p) => sorted[Math.min(sorted.length - 1, Math.floor(p / 100 * sorted.length))].toFixed(0);
     $("latencystats").textContent = `end to end: last ${latency[latency.length - 1].e2e_ms.toFixed(0)} ms · ` +
       `p50 ${pct(50)} · p95 ${pct(95)} ms over ${latency.length} steps`;
-    const first = latency[0].step, last = latency[latency.length - 1].step;
-    const shown = displayLatency.filter((e) => e.step >= first && e.step <= last);
-    if (shown.length) {  // to the display: the step's position on the chart's x axis, a dashed yellow line
-      const xs = (step) => x(latency.length - 1 - (last - step));
+    const index = new Map(latency.map((e, i) => [e.step, i]));  // a step's place on the chart's x axis
+    const shown = displayLatency.filter((e) => index.has(e.step));
+    if (shown.length) {  // to the display: a dashed yellow line
+      const xs = (step) => x(index.get(step));
       g.beginPath(); g.strokeStyle = "#f5d442"; g.setLineDash([4 * dpr, 3 * dpr]);
       shown.forEach((e, i) => (i ? g.lineTo(xs(e.step), y(e.e2e_ms)) : g.moveTo(xs(e.step), y(e.e2e_ms))));
       g.stroke(); g.setLineDash([]);
