@@ -14,7 +14,9 @@ const FRAME_MS = 40;
 const FRAMES_PER_STEP = 2;
 const HEADER_BYTES = 48, FRAME_FLOATS = 320, JOINTS = 55, EXPRESSIONS = 100, ARKIT = 52;
 const VERSION = 1;
-const TARGET_LAG = 1.5;   // frames behind the newest: one to interpolate towards, half a frame of jitter margin
+// Frames behind the newest: a step's two frames arrive together every 80 ms, so a playhead moving at 25 fps needs
+// two frames in hand to never wait for the next step; the first frame of a step then shows 40 ms after it arrives.
+const TARGET_LAG = 2.0;
 const MAX_LAG = 8;        // further behind than this (320 ms): jump
 const KEEP_FRAMES = 50;   // frames kept behind the playhead
 const BACKGROUND = 0x1b2026;
