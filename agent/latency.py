@@ -23,6 +23,7 @@ from ecas.core.messages import Metrics
 from ecas.core.timing import FRAMES_PER_STEP, NS_PER_MS
 
 PERCENTILES = (50, 95, 99)
+DISPLAY_KEY = "display_e2e_ms"  # a dashboard Metrics value: a step shown on a page (agent.dashboard.process)
 
 
 def percentiles(values: Sequence[float]) -> dict[str, float]:
@@ -87,9 +88,14 @@ class LatencyRecorder:
         self.segments_ms: dict[str, dict[str, list[float]]] = {
             s: {"wait": [], "compute": [], "total": []} for s in self.pipeline
         }
+        self.display: dict[int, tuple[float, float]] = {}  # step -> (capture to a page's display ms, clock RTT ms)
 
     def add(self, msg: Metrics, offsets_ns: dict[str, int]) -> None:
-        """Record one sink output, if it is its step's last frame."""
+        """Record one sink output, if it is its step's last frame. A dashboard's display sample (`DISPLAY_KEY`,
+        measured on the dashboard's clock) is kept apart."""
+        if DISPLAY_KEY in msg.values:
+            self.display.setdefault(msg.step, (msg.values[DISPLAY_KEY], msg.values.get("clock_rtt_ms", float("nan"))))
+            return
         latency = step_latency(msg, self.pipeline, offsets_ns)
         if latency is None:
             return
@@ -117,10 +123,24 @@ class LatencyRecorder:
             "clock_offsets": clock,
             "stream": timing or {},
         }
+        if self.display:
+            out["display"] = self.display_summary()
         if not live:
             out["end_to_end_note"] = "offline: queueing behind the credit window, not latency"
             out["throughput"] = throughput(timing or {}, counters, self.pipeline[-1])
         return out
+
+    def display_summary(self) -> dict:
+        """Latency from capture to the page's display of the step (the browser's clock moved to the dashboard's
+        by its best round trip), and the steps between the first and last shown that no page reported."""
+        steps = sorted(self.display)
+        values = [self.display[s] for s in steps]
+        return {
+            "end_to_end_ms": percentiles([v[0] for v in values]),
+            "clock_rtt_ms": percentiles([v[1] for v in values]),
+            "steps_shown": len(steps),
+            "steps_not_shown": steps[-1] - steps[0] + 1 - len(steps),
+        }
 
     def write(
         self,
@@ -202,6 +222,17 @@ def format_table(summary: dict) -> str:
         )
     e2e = summary["end_to_end_ms"]
     rows.append(("end to end", *(_fmt(e2e.get(k)) for k in ("p50", "p95", "p99", "max")), "1", "", ""))
+    if "display" in summary:
+        shown = summary["display"]
+        rows.append(
+            (
+                "to the display",
+                *(_fmt(shown["end_to_end_ms"].get(k)) for k in ("p50", "p95", "p99", "max")),
+                "",
+                str(shown["steps_not_shown"]),
+                "",
+            )
+        )
     lines = _aligned(rows)
     stream = summary.get("stream") or {}
     pace = (

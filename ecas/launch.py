@@ -61,6 +61,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--host", metavar="ADDR", help="serve the dashboard on this address (default 127.0.0.1: this machine only)"
     )
     p.add_argument("--mp4", metavar="OUT", help="write the rendered conversation to this MP4")
+    p.add_argument(
+        "--avatar", metavar="FILE", help="draw this VRM or Mixamo-rigged GLB in the page (sets render.mode=browser)"
+    )
     p.add_argument("--fast", action="store_true", help="as fast as possible and lossless (offline)")
     p.add_argument("--seed", type=int, help="random seed (offline runs are deterministic with it)")
     p.add_argument(
@@ -121,6 +124,8 @@ def mode_overrides(args: argparse.Namespace, speak_duration_s: float | None) -> 
         out += ["dashboard.enabled=false", "io.speaker=false"]
     if args.host:
         out += [f"dashboard.host={yaml.safe_dump(args.host).strip()}"]
+    if args.avatar:
+        out += [f"render.avatar={yaml.safe_dump(args.avatar).strip()}", "render.mode=browser"]
     offline = args.fast or (args.headless and not args.mic)
     out += ["run.live=false" if offline else "run.live=true"]
     if args.seed is not None:

@@ -91,13 +91,15 @@ JAW_FULL_OPEN_RAD = 0.20  # opening above rest that gives jawOpen 1 (the synthet
 JAW_FULL_SIDE_RAD = 0.10  # turn about y that gives jawLeft / jawRight 1
 
 # (ARKit names, semantic shape, side, gain): weight = clip(gain * side * activation, 0, 1).
-# Side +1 takes the shape's positive activation, -1 its negative one (a frown is a negative smile).
+# Side +1 takes the shape's positive activation, -1 its negative one (a frown is a negative smile). The first rule
+# of a shape's side is its primary: in the exported avatar (render.gltf) that target carries the shape's vertex
+# offsets (split into left and right halves for a pair), the others move nothing.
 FACE_RULES = (
     (("eyeBlinkLeft", "eyeBlinkRight"), "blink", 1, 1.0),
     (("eyeWideLeft", "eyeWideRight"), "blink", -1, 0.5),
-    (("eyeSquintLeft", "eyeSquintRight"), "smile", 1, 0.3),
     (("mouthSmileLeft", "mouthSmileRight"), "smile", 1, 1.0),
     (("cheekSquintLeft", "cheekSquintRight"), "smile", 1, 0.5),
+    (("eyeSquintLeft", "eyeSquintRight"), "smile", 1, 0.3),
     (("mouthFrownLeft", "mouthFrownRight"), "smile", -1, 1.0),
     (("browInnerUp",), "brow_raise", 1, 1.0),
     (("browOuterUpLeft", "browOuterUpRight"), "brow_raise", 1, 0.8),

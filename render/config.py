@@ -16,8 +16,15 @@ class RenderConfig:
     `body_model` is a path to a real SMPL-X model (SMPLX_NEUTRAL_2020.npz or .pkl); empty: the built-in
     mannequin. `size` is the square frame size offline, `live_size` in live mode; `width`/`height` override
     both (e.g. 1280x720). Live mode drops a frame when its step is more than `max_lag_ms` old.
+
+    `mode`: `server` draws the avatar here and sends the dashboard JPEG frames; `browser` draws nothing for the
+    dashboard (its page draws the avatar with three.js from the motion stream, docs/avatar.md): the stage only
+    renders for the MP4 when `mp4_path` is set, and publishes image-less frames that carry the latency stamps.
+    `avatar`: the user's VRM (0.x / 1.0) or Mixamo-rigged GLB the page draws in browser mode (empty: ours).
     """
 
+    mode: Literal["server", "browser"] = "server"
+    avatar: Path | None = None
     body_model: Path | None = None
     betas: tuple[float, ...] = ()
     platform: Literal["osmesa", "egl"] = "osmesa"
@@ -37,6 +44,10 @@ class RenderConfig:
     mp4_preset: str = "veryfast"
 
     def __post_init__(self) -> None:
+        if self.mode not in ("server", "browser"):
+            raise ConfigError(f"render.mode: must be server or browser, got {self.mode!r}")
+        if self.avatar is not None and not Path(self.avatar).is_file():
+            raise ConfigError(f"render.avatar: {self.avatar} is not a file (a .vrm or a Mixamo-rigged .glb)")
         for name in ("size", "live_size"):
             value = getattr(self, name)
             if not 16 <= value <= 4096 or value % 2:

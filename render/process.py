@@ -7,6 +7,9 @@ MP4 timeline: the audio of every dialogue step is written with the step's two fr
 missing (dropped live, or its gesture step lost) repeats the last rendered frame, so audio and video stay in
 sync to the frame. Live mode drops a frame when its step is older than `max_lag_ms` and counts it;
 offline mode renders every frame and waits for both the audio and the frames of a step before writing it.
+
+With `render.mode: browser` the page draws the avatar: this stage renders only for the MP4 (none: no GL at all)
+and publishes each frame without an image (`encoding="none"`), so the run's latency stamps still reach the sink.
 """
 
 from __future__ import annotations
@@ -96,6 +99,15 @@ class RenderComponent:
         self.cfg, self.live = cfg, run.live
         self.origin_offset_ns = 0  # t_origin_ns + this = capture time on this process's clock
         self.width, self.height = cfg.frame_size(run.live)
+        self.rendered_frames = 0
+        self.dropped_frames = 0
+        self.flushed = False
+        self.timeline: StepTimeline | None = None
+        self.view: AvatarView | None = None
+        if cfg.mode == "server" or cfg.mp4_path:
+            self._open_view_and_mp4(cfg, run)
+
+    def _open_view_and_mp4(self, cfg: RenderConfig, run: RunContext) -> None:
         betas = np.asarray(cfg.betas, dtype=np.float64) if cfg.betas else None
         self.view = AvatarView(
             load_body(cfg.body_model),
@@ -109,7 +121,6 @@ class RenderComponent:
         )
         self.view.frame(np.zeros((55, 3)), np.array([0.0, 1.3, 0.0]), np.zeros(100))  # warm-up: GL upload
         self.view.reset()
-        self.timeline: StepTimeline | None = None
         if cfg.mp4_path:
             writer = BackgroundMp4Writer(
                 Mp4Writer(
@@ -123,9 +134,6 @@ class RenderComponent:
             )
             self.timeline = StepTimeline(writer, cfg.mp4_audio == "stereo", run.live)
             self.timeline_failed = False
-        self.rendered_frames = 0
-        self.dropped_frames = 0
-        self.flushed = False
 
     def counters(self) -> dict[str, int]:
         return {
@@ -163,6 +171,8 @@ class RenderComponent:
         self.origin_offset_ns = offset_ns
 
     def _render_step(self, msg: GestureStep) -> list[RenderFrame]:
+        if self.cfg.mode == "browser":
+            return self._browser_step(msg)
         outputs = []
         for index in range(FRAMES_PER_STEP):
             if self._too_late(msg):
@@ -180,6 +190,21 @@ class RenderComponent:
                     frame_index=index, width=self.width, height=self.height, encoding=self.cfg.encoding, image=image
                 )
             )
+        return outputs
+
+    def _browser_step(self, msg: GestureStep) -> list[RenderFrame]:
+        """The page draws the avatar: frames for the MP4 only, and image-less frames for the latency stamps."""
+        outputs = []
+        for index in range(FRAMES_PER_STEP):
+            if self.timeline is not None:
+                if self._too_late(msg):
+                    self.dropped_frames += 1
+                    self.timeline.add_frame(msg.step, index, None)
+                else:
+                    rgb = self.view.frame(msg.poses[index], msg.trans[index], msg.expressions[index])
+                    self.rendered_frames += 1
+                    self.timeline.add_frame(msg.step, index, rgb)
+            outputs.append(RenderFrame(frame_index=index, encoding="none", image=np.zeros(0, np.uint8)))
         return outputs
 
     def flush(self) -> Sequence[Message]:
@@ -210,7 +235,8 @@ class RenderComponent:
                 path = self.timeline.writer.close(commit=commit)
                 log.info("mp4 %s (%d frames)", path or "discarded", self.timeline.writer.frames_written)
         finally:
-            self.view.close()
+            if self.view is not None:
+                self.view.close()
 
 
 def create_component(cfg: RenderConfig, run: RunContext) -> RenderComponent:

@@ -24,13 +24,14 @@ MAX_WORDS_PER_TURN = 400  # a longer turn keeps its last words
 AGENT_GAP_STEPS = 10  # steps without agent speech or words that end an agent turn (0.8 s)
 BINARY_HEADER = struct.Struct("<BxHI")  # kind, (pad), frame index, step
 BINARY_FRAME, BINARY_AUDIO, BINARY_MIC = 1, 2, 3  # frame and agent audio to the page; microphone from it
+BINARY_MOTION = 4  # a step's motion packet (render.motion_wire, docs/motion_stream.md) to the pages that asked
 USER_TALKING = (VadState.STARTING, VadState.SPEAKING)
 
 Event = dict
 
 
 def pack_binary(kind: int, step: int, index: int, payload: bytes) -> bytes:
-    """One binary WebSocket message: the header, then a JPEG file or int16 PCM."""
+    """One binary WebSocket message: the header, then a JPEG file, int16 PCM or a motion packet."""
     return BINARY_HEADER.pack(kind, index, step) + payload
 
 
@@ -267,13 +268,16 @@ class RunState:
         }
 
 
-def hello_event(pipeline: Sequence[str], live: bool, session: str, browser_mic: bool) -> Event:
+def hello_event(
+    pipeline: Sequence[str], live: bool, session: str, browser_mic: bool, render_mode: str = "server"
+) -> Event:
     return {
         "type": "hello",
         "pipeline": list(pipeline),
         "live": live,
         "session": session,
         "browser_mic": browser_mic,
+        "render_mode": render_mode,
         "sample_rate_hz": SAMPLE_RATE_HZ,
         "frames_per_step": FRAMES_PER_STEP,
     }

@@ -9,6 +9,7 @@ START / STOP, and heartbeats. It exits on the supervisor's STOP, on SIGTERM, or 
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 import os
 import signal
@@ -24,6 +25,7 @@ from agent.clock import ClockSync
 from agent.dashboard.events import (
     BINARY_AUDIO,
     BINARY_FRAME,
+    BINARY_MOTION,
     LatencyMeter,
     RunState,
     Transcript,
@@ -33,22 +35,35 @@ from agent.dashboard.events import (
     pcm_int16,
     vad_event,
 )
+from agent.latency import DISPLAY_KEY
 from agent.process import SupervisorWatch, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
 from ecas.core.bus import Publisher, Subscriber, stage_address
 from ecas.core.component import RunContext
-from ecas.core.messages import Command, Control, DialogueStep, Kind, Message, Metrics, MicAudio, RenderFrame
+from ecas.core.messages import (
+    Command,
+    Control,
+    DialogueStep,
+    GestureStep,
+    Kind,
+    Message,
+    Metrics,
+    MicAudio,
+    RenderFrame,
+)
+from render.motion_wire import encode, motion_packet
 
 log = logging.getLogger("dashboard")
 
 DASHBOARD = "dashboard"
-TOPICS = tuple(k.value for k in (Kind.CONTROL, Kind.METRICS, Kind.DIALOGUE_STEP, Kind.RENDER_FRAME))
+TOPICS = tuple(k.value for k in (Kind.CONTROL, Kind.METRICS, Kind.DIALOGUE_STEP, Kind.GESTURE_STEP, Kind.RENDER_FRAME))
 LIVE_QUEUE_MESSAGES = 64  # data messages waiting here; past it the oldest frames are dropped and counted ...
-# ... never the words, speech and latencies (small, one per step)
-KEPT_TOPICS = (Kind.METRICS.value, Kind.DIALOGUE_STEP.value)
+# ... never the words, speech, motion and latencies (small, one per step)
+KEPT_TOPICS = (Kind.METRICS.value, Kind.DIALOGUE_STEP.value, Kind.GESTURE_STEP.value)
 POLL_S = 0.01
 COUNTERS_EVERY_S = 0.5
+ORIGINS_KEPT = 250  # steps whose capture time waits for a page's display report (20 s)
 URL_FILE = "dashboard.url"
 EXIT_STARTUP_FAILED = 3
 
@@ -72,6 +87,7 @@ class DashboardBridge:
     def __init__(self, launch: DashboardLaunch):
         app = launch.app
         self.cfg, self.live = app.dashboard, launch.run.live
+        self.render_mode = app.render.mode
         self.pipeline = tuple(app.run.stages)
         self.session = launch.run.session
         ctx = zmq.Context.instance()
@@ -87,10 +103,13 @@ class DashboardBridge:
         self.stopping = False
         self.frames_in = 0
         self.bad_frames = 0
+        self.motion_steps = 0
+        self.origins: collections.OrderedDict[int, int] = collections.OrderedDict()  # step -> capture time, here
+        self.displayed_steps = 0
 
     def snapshot(self) -> list[dict]:
         return [
-            hello_event(self.pipeline, self.live, self.session, self.cfg.browser_mic),
+            hello_event(self.pipeline, self.live, self.session, self.cfg.browser_mic, self.render_mode),
             self.run_state.event(),
             *self.transcript.snapshot(),
             *self.latency.snapshot(),
@@ -104,6 +123,8 @@ class DashboardBridge:
             "lost": self.sub.lost,
             "decode_errors": self.sub.decode_errors,
             "bad_frames": self.bad_frames,
+            "motion_steps": self.motion_steps,
+            "displayed_steps": self.displayed_steps,
             "mic_chunks": self.mic_chunks,
             **(self.hub.counters() if self.hub else {}),
         }
@@ -139,13 +160,48 @@ class DashboardBridge:
                 self.hub.broadcast(event)
             if msg.agent_speaking or msg.text_piece:
                 self.hub.broadcast_audio(pack_binary(BINARY_AUDIO, msg.step, 0, pcm_int16(msg.agent_pcm)))
+        elif isinstance(msg, GestureStep):
+            self._on_motion(msg)
         elif isinstance(msg, Metrics):
             for event in self.latency.on_metrics(msg, self.clock.offsets_ns()):
                 self.hub.broadcast(event)
 
+    def _on_motion(self, msg: GestureStep) -> None:
+        """A step's motion to the pages and clients that asked for it, its times on this host's clock."""
+        self.motion_steps += 1
+        offsets = self.clock.offsets_ns()
+        origin = msg.t_origin_ns - offsets.get(self.pipeline[0], 0) if msg.t_origin_ns else 0
+        if origin:
+            self.origins[msg.step] = origin
+            while len(self.origins) > ORIGINS_KEPT:
+                self.origins.popitem(last=False)
+        if not self.hub.motion_pages:
+            return
+        packet = motion_packet(
+            msg.step,
+            msg.poses,
+            msg.trans,
+            msg.expressions,
+            t_origin_ns=origin,
+            t_motion_ns=msg.stamps.get("gesture", msg.t_ns) - offsets.get("gesture", 0),
+        )
+        self.hub.broadcast_motion(pack_binary(BINARY_MOTION, msg.step, 0, encode(packet)))
+
+    def on_displayed(self, step: int, t_display_ns: float, clock_rtt_ms: float) -> None:
+        """A page showed `step`: its latency from capture to the display, to the page's chart and, as a Metrics
+        sample, to the run's latency.json (the first page's report of a step counts)."""
+        origin = self.origins.pop(step, None)
+        if origin is None:
+            return
+        e2e_ms = round((t_display_ns - origin) / 1e6, 2)
+        self.displayed_steps += 1
+        self.hub.broadcast({"type": "display_latency", "step": step, "e2e_ms": e2e_ms, "clock_rtt_ms": clock_rtt_ms})
+        values = {DISPLAY_KEY: e2e_ms, "clock_rtt_ms": round(clock_rtt_ms, 3)}
+        self.pub.send(Metrics(session=self.session, step=step, t_origin_ns=origin, values=values))
+
     def _on_frame(self, msg: RenderFrame) -> None:
         self.frames_in += 1
-        if not self.hub.pages:
+        if not self.hub.pages or msg.encoding == "none":  # render.mode browser: the page draws the avatar
             return
         try:
             jpeg = frame_jpeg(msg, self.cfg.jpeg_quality)
@@ -178,13 +234,15 @@ async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
     from agent.dashboard.server import Hub, make_app, start_server
 
     bridge = DashboardBridge(launch)
-    bridge.hub = Hub(bridge.snapshot, bridge.command, bridge.send_mic if bridge.cfg.browser_mic else None)
+    bridge.hub = Hub(
+        bridge.snapshot, bridge.command, bridge.send_mic if bridge.cfg.browser_mic else None, bridge.on_displayed
+    )
     supervisor.stop = lambda: setattr(bridge, "stopping", True)
     loop = asyncio.get_running_loop()
     loop.add_signal_handler(signal.SIGTERM, supervisor.stop)
     cfg = launch.app.dashboard
     tls = (cfg.tls_cert, cfg.tls_key) if cfg.tls_cert else None
-    runner, port = await start_server(make_app(bridge.hub), cfg.host, cfg.port, tls)
+    runner, port = await start_server(make_app(bridge.hub, launch.app.render.avatar), cfg.host, cfg.port, tls)
     url = page_url(cfg.host, port, tls is not None)
     (launch.run.run_dir / URL_FILE).write_text(url + "\n")
     log.info("serving %s", url)

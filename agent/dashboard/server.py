@@ -4,8 +4,9 @@ The WebSocket pushes JSON events (text messages) and frames / agent audio (binar
 `events.pack_binary`). Every page has its own sender: when a page falls behind, only its newest few frames wait
 (older ones are skipped and counted), so a slow browser never holds up the bus or other pages.
 A page sends `{"type": "control", "command": "start" | "stop"}`, `{"type": "audio", "enabled": bool}` (the
-agent's voice) and, with the browser microphone, `{"type": "mic", "enabled": bool}` then binary int16 PCM at
-24 kHz (header kind BINARY_MIC); one page at a time holds the microphone.
+agent's voice), `{"type": "motion", "enabled": bool}` (the motion stream, docs/motion_stream.md) and, with the
+browser microphone, `{"type": "mic", "enabled": bool}` then binary int16 PCM at 24 kHz (header kind BINARY_MIC);
+one page at a time holds the microphone.
 """
 
 from __future__ import annotations
@@ -27,10 +28,13 @@ from agent.dashboard.events import BINARY_HEADER, BINARY_MIC, Event
 log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
+THREE_DIR = Path(__file__).resolve().parents[2] / "node_modules" / "three"  # `npm ci` at setup (package.json)
 MAX_PENDING_EVENTS = 2000  # a page this far behind is disconnected; it reconnects and gets a snapshot
 MAX_PENDING_AUDIO = 25  # steps of agent audio (2 s)
 MAX_PENDING_FRAMES = 4  # the render stage publishes a step's two frames together
+MAX_PENDING_MOTION = 50  # steps of motion (4 s); a page further behind skips the oldest (counted)
 COMMANDS = ("start", "stop")
+AVATAR_FILES = web.AppKey("avatar_files", object)
 
 
 class Page:
@@ -41,8 +45,11 @@ class Page:
         self.events: collections.deque[str] = collections.deque()
         self.audio: collections.deque[bytes] = collections.deque(maxlen=MAX_PENDING_AUDIO)
         self.frames: collections.deque[bytes] = collections.deque()
+        self.motion: collections.deque[bytes] = collections.deque()
         self.wants_audio = False
+        self.wants_motion = False
         self.skipped_frames = 0
+        self.skipped_motion = 0
         self.wake = asyncio.Event()
         self.sending = False  # a batch of messages is on its way out
         self.reader: asyncio.Future | None = None  # reads the page's messages until it closes or the run ends
@@ -62,6 +69,13 @@ class Page:
         self.frames.append(data)
         self.wake.set()
 
+    def push_motion(self, data: bytes) -> None:
+        if len(self.motion) >= MAX_PENDING_MOTION:
+            self.motion.popleft()
+            self.skipped_motion += 1
+        self.motion.append(data)
+        self.wake.set()
+
     def push_audio(self, data: bytes) -> None:
         if self.wants_audio:
             self.audio.append(data)
@@ -77,6 +91,8 @@ class Page:
                     await self.ws.send_str(self.events.popleft())
                 while self.audio:
                     await self.ws.send_bytes(self.audio.popleft())
+                while self.motion:
+                    await self.ws.send_bytes(self.motion.popleft())
                 while self.frames:
                     await self.ws.send_bytes(self.frames.popleft())
             finally:
@@ -95,13 +111,16 @@ class Hub:
         snapshot: Callable[[], Iterable[Event]],
         on_command: Callable[[str], None],
         on_mic: Callable[[bytes], None] | None = None,
+        on_displayed: Callable[[int, float, float], None] | None = None,
     ):
         self.snapshot = snapshot
         self.on_command = on_command
+        self.on_displayed = on_displayed  # (step, its display time on this host's monotonic clock ns, clock RTT ms)
         self.on_mic = on_mic  # None: no browser microphone in this run
         self.mic_page: Page | None = None
         self.pages: set[Page] = set()
         self.skipped_frames_closed = 0  # frames skipped by pages that have since closed
+        self.skipped_motion_closed = 0
 
     def broadcast(self, event: Event) -> None:
         if self.pages:
@@ -112,6 +131,14 @@ class Hub:
     def broadcast_frame(self, data: bytes) -> None:
         for page in self.pages:
             page.push_frame(data)
+
+    @property
+    def motion_pages(self) -> list[Page]:
+        return [page for page in self.pages if page.wants_motion]
+
+    def broadcast_motion(self, data: bytes) -> None:
+        for page in self.motion_pages:
+            page.push_motion(data)
 
     def broadcast_audio(self, data: bytes) -> None:
         for page in self.pages:
@@ -124,6 +151,7 @@ class Hub:
         for page in self.pages:
             page.frames.clear()
             page.audio.clear()
+            page.motion.clear()
         self.broadcast(event)
         deadline = time.monotonic() + timeout_s
         while not all(page.flushed for page in self.pages) and time.monotonic() < deadline:
@@ -153,6 +181,7 @@ class Hub:
         return {
             "pages": len(self.pages),
             "skipped_frames": self.skipped_frames_closed + sum(p.skipped_frames for p in self.pages),
+            "skipped_motion": self.skipped_motion_closed + sum(p.skipped_motion for p in self.pages),
         }
 
     async def websocket(self, request: web.Request) -> web.WebSocketResponse:
@@ -179,6 +208,7 @@ class Hub:
                 self.mic_page = None
             self.pages.discard(page)
             self.skipped_frames_closed += page.skipped_frames
+            self.skipped_motion_closed += page.skipped_motion
             sender.cancel()
             page.finished.set()
             log.info("page disconnected (close code %s, %d open)", ws.close_code, len(self.pages))
@@ -204,10 +234,25 @@ class Hub:
             self.on_command(msg["command"])
         elif msg.get("type") == "audio":
             page.wants_audio = bool(msg.get("enabled"))
+        elif msg.get("type") == "motion":
+            page.wants_motion = bool(msg.get("enabled"))
+        elif msg.get("type") == "clock" and isinstance(msg.get("t_page_ms"), (int, float)):
+            # the page's NTP-style probe: it keeps the offset of its fastest round trip
+            reply = {"type": "clock", "t_page_ms": msg["t_page_ms"], "t_server_ns": time.monotonic_ns()}
+            page.push_event(json.dumps(reply))
+        elif msg.get("type") == "displayed":
+            self._on_displayed(msg)
         elif msg.get("type") == "mic":
             self._claim_mic(page, bool(msg.get("enabled")))
         else:
             log.warning("ignored an unknown page message: %.80r", text)
+
+    def _on_displayed(self, msg: dict) -> None:
+        """A page showed a step: `t_server_ns` is its display time on this host's clock (from its clock probes)."""
+        step, t_ns, rtt = msg.get("step"), msg.get("t_server_ns"), msg.get("clock_rtt_ms")
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (step, t_ns, rtt))
+        if self.on_displayed is not None and numbers and step >= 0:
+            self.on_displayed(int(step), float(t_ns), float(rtt))
 
     def _claim_mic(self, page: Page, enabled: bool) -> None:
         if not enabled:
@@ -236,8 +281,12 @@ def same_origin(request: web.Request) -> bool:
     return origin is None or urlsplit(origin).netloc == request.host
 
 
-def make_app(hub: Hub) -> web.Application:
+def make_app(hub: Hub, avatar: str | None = None) -> web.Application:
+    """The dashboard's routes; `avatar` is the user's rig the page draws in render.mode browser (None: ours)."""
+    from agent.dashboard.avatar_file import AvatarFiles
+
     app = web.Application()
+    app[AVATAR_FILES] = AvatarFiles(avatar)
 
     async def index(_request: web.Request) -> web.FileResponse:
         return web.FileResponse(STATIC_DIR / "index.html")
@@ -248,8 +297,26 @@ def make_app(hub: Hub) -> web.Application:
     app.router.add_get("/", index)
     app.router.add_get("/state.json", state)
     app.router.add_get("/ws", hub.websocket)
+    app.router.add_get("/avatar.glb", avatar_glb)
+    app.router.add_get("/avatar.json", avatar_spec)
     app.router.add_static("/static/", STATIC_DIR)
+    if THREE_DIR.is_dir():
+        app.router.add_static("/vendor/three/", THREE_DIR)
+    else:
+        log.warning("%s is missing: run `npm ci` (render.mode browser draws the avatar with it)", THREE_DIR)
     return app
+
+
+async def avatar_glb(request: web.Request) -> web.Response:
+    """The avatar the page draws: the user's rig, or ours as a skinned GLB (built once, then cached on disk)."""
+    path = await asyncio.get_running_loop().run_in_executor(None, request.app[AVATAR_FILES].glb)
+    return web.FileResponse(path, headers={"Content-Type": "model/gltf-binary"})
+
+
+async def avatar_spec(request: web.Request) -> web.Response:
+    """How the page drives the avatar's bones and face from SMPL-X motion (render.rig.Rig.spec)."""
+    spec = await asyncio.get_running_loop().run_in_executor(None, request.app[AVATAR_FILES].spec)
+    return web.json_response(spec)
 
 
 async def start_server(

@@ -3,7 +3,7 @@
 "use strict";
 
 const STEP_S = 0.08;
-const KIND_FRAME = 1, KIND_AUDIO = 2, KIND_MIC = 3;
+const KIND_FRAME = 1, KIND_AUDIO = 2, KIND_MIC = 3, KIND_MOTION = 4;
 const HISTORY = 250;  // steps on the charts (20 s)
 const MAX_TURNS = 200;
 const STAGE_COLORS = ["#8e9aaf", "#4c9be8", "#f0a13a", "#5cb85c", "#c678dd"];
@@ -27,7 +27,8 @@ function connect() {
   ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
   ws.binaryType = "arraybuffer";
   ws.onopen = () => { $("connection").textContent = "connected"; $("connection").className = "conn up";
-                      if (audio.ctx) send({type: "audio", enabled: true}); };
+                      clock.probes = []; probeClock();
+                      if (audio.ctx) send({type: "audio", enabled: true}); };  // motion: asked for in onHello
   ws.onclose = () => { $("connection").textContent = "offline"; $("connection").className = "conn";
                        setTimeout(connect, 1000); };
   ws.onmessage = (m) => (typeof m.data === "string" ? onEvent(JSON.parse(m.data)) : onBinary(m.data));
@@ -45,6 +46,8 @@ function onEvent(e) {
     case "latency": onLatency(e); break;
     case "counters": onCounters(e); break;
     case "mic": if (!e.granted) { stopMic(); $("micinfo").textContent = e.reason; } break;
+    case "clock": onClock(e); break;
+    case "display_latency": onDisplayLatency(e); break;
   }
 }
 
@@ -53,17 +56,21 @@ function onBinary(buf) {
   const kind = view.getUint8(0), index = view.getUint16(2, true), step = view.getUint32(4, true);
   if (kind === KIND_FRAME) onFrame(step, index, new Blob([new Uint8Array(buf, 8)], {type: "image/jpeg"}));
   else if (kind === KIND_AUDIO) onAudio(step, new Int16Array(buf, 8));
+  else if (kind === KIND_MOTION && avatar.player) avatar.player.push(buf, 8);
 }
 
 // ---- run state and controls -----------------------------------------------------------------------------
 function onHello(e) {
   dash.pipeline = e.pipeline;
+  if (e.render_mode === "browser") startAvatar();
   $("mic").hidden = !e.browser_mic;
   if (mic.on) send({type: "mic", enabled: true});  // reconnected: claim the microphone again
   latency = []; turnHistory = []; chartDirty = stripDirty = true;
   turnEls.forEach((el) => el.remove()); turnEls.clear();
   $("legend").innerHTML = e.pipeline.map((s, i) => `<span><i style="background:${STAGE_COLORS[i]}"></i>${s}</span>`)
-    .join("") + `<span><i style="background:#fff"></i>end to end</span>` + (e.live ? "" : "<span>(offline run)</span>");
+    .join("") + `<span><i style="background:#fff"></i>end to end</span>` +
+    `<span><i style="background:#f5d442"></i>to this page's display</span>` + (e.live ? "" : "<span>(offline run)</span>");
+  displayLatency = [];
 }
 
 function onRun(e) {
@@ -113,8 +120,60 @@ function showFrames() {
   canvas.getContext("2d").drawImage(bitmap, 0, 0);
   bitmap.close();
   dash.frames += 1; dash.lastFrameStep = step;
+  reportDisplayed(step);
   $("frameinfo").textContent = `step ${step} · frame ${index} · t = ${(step * STEP_S).toFixed(2)} s`;
   playAudioUpTo(step);
+}
+
+// ---- the avatar drawn here (render.mode: browser; static/avatar.js) ---------------------------------------
+// Read by the tests: fps (measured over the last second), draws, received (motion frames), shownStep, ready.
+const avatar = window.ecasAvatar = {fps: 0, draws: 0, received: 0, shownStep: -1, ready: false, error: "",
+                                    player: null, loading: false};
+
+function startAvatar() {
+  send({type: "motion", enabled: true});
+  if (avatar.loading) return;
+  avatar.loading = true;
+  $("video").hidden = true;
+  $("avatar").hidden = false;
+  import("/static/avatar.js")
+    .then((m) => m.start($("avatar"), onAvatarStep))
+    .catch((err) => { avatar.error = String(err && err.message || err);
+                      $("frameinfo").textContent = `avatar: ${avatar.error}`; });
+}
+
+function onAvatarStep(step) {
+  $("frameinfo").textContent = `step ${step} · drawn here · ${avatar.fps.toFixed(0)} fps`;
+  playAudioUpTo(step);
+  reportDisplayed(step);
+}
+
+// ---- latency to the display: the page's clock against the dashboard's, and the steps it shows -------------
+// Every second the page probes the dashboard's monotonic clock; the probe with the shortest round trip of the
+// last CLOCK_PROBES gives the offset (NTP's rule: its error is at most half that round trip). Each newly shown
+// step is reported with its display time on the dashboard's clock.
+const CLOCK_PROBES = 20;
+const clock = {probes: [], offsetMs: null, rttMs: null, lastStep: -1};
+dash.displayReports = 0;
+
+const pageNowMs = () => performance.timeOrigin + performance.now();
+
+function probeClock() { send({type: "clock", t_page_ms: pageNowMs()}); }
+
+function onClock(e) {
+  const now = pageNowMs(), rtt = now - e.t_page_ms;
+  clock.probes.push({rtt, offset: e.t_server_ns / 1e6 - (e.t_page_ms + now) / 2});
+  if (clock.probes.length > CLOCK_PROBES) clock.probes.shift();
+  const best = clock.probes.reduce((a, b) => (b.rtt < a.rtt ? b : a));
+  clock.offsetMs = best.offset; clock.rttMs = best.rtt;
+  dash.clockRttMs = best.rtt;
+}
+
+function reportDisplayed(step) {
+  if (clock.offsetMs === null || step <= clock.lastStep) return;
+  clock.lastStep = step;
+  send({type: "displayed", step, t_server_ns: (pageNowMs() + clock.offsetMs) * 1e6, clock_rtt_ms: clock.rttMs});
+  dash.displayReports += 1;
 }
 
 // ---- the agent's voice, synced to the video by step ------------------------------------------------------
@@ -153,7 +212,7 @@ function playAudioUpTo(step) {
     const at = Math.max(now + 0.01, audio.playhead);
     src.start(at);
     audio.playhead = at + buffer.duration;
-    audio.played = s; dash.audioSteps += 1;
+    audio.played = s; dash.audioSteps += 1; dash.audioLastStep = s;
   }
 }
 
@@ -263,6 +322,16 @@ function drawStrip() {
 }
 
 // ---- latency chart --------------------------------------------------------------------------------------
+let displayLatency = [];  // recent display_latency events: capture to this page's display
+dash.displaySamples = 0;
+
+function onDisplayLatency(e) {
+  displayLatency.push(e);
+  if (displayLatency.length > HISTORY) displayLatency.shift();
+  dash.displaySamples += 1;
+  chartDirty = true;
+}
+
 function onLatency(e) {
   latency.push(e);
   if (latency.length > HISTORY) latency.shift();
@@ -311,6 +380,17 @@ function drawChart() {
     const pct = (p) => sorted[Math.min(sorted.length - 1, Math.floor(p / 100 * sorted.length))].toFixed(0);
     $("latencystats").textContent = `end to end: last ${latency[latency.length - 1].e2e_ms.toFixed(0)} ms · ` +
       `p50 ${pct(50)} · p95 ${pct(95)} ms over ${latency.length} steps`;
+    const index = new Map(latency.map((e, i) => [e.step, i]));  // a step's place on the chart's x axis
+    const shown = displayLatency.filter((e) => index.has(e.step));
+    if (shown.length) {  // to the display: a dashed yellow line
+      const xs = (step) => x(index.get(step));
+      g.beginPath(); g.strokeStyle = "#f5d442"; g.setLineDash([4 * dpr, 3 * dpr]);
+      shown.forEach((e, i) => (i ? g.lineTo(xs(e.step), y(e.e2e_ms)) : g.moveTo(xs(e.step), y(e.e2e_ms))));
+      g.stroke(); g.setLineDash([]);
+      const d = shown.map((e) => e.e2e_ms).sort((a, b) => a - b);
+      const dp = (p) => d[Math.min(d.length - 1, Math.floor(p / 100 * d.length))].toFixed(0);
+      $("latencystats").textContent += ` · to the display: p50 ${dp(50)} · p95 ${dp(95)} ms`;
+    }
     dash.chartLastStep = latency[latency.length - 1].step;
   }
   dash.chartDraws += 1;
@@ -338,6 +418,7 @@ function onCounters(e) {
 
 // ---- main -----------------------------------------------------------------------------------------------
 setInterval(showFrames, 5);
+setInterval(probeClock, 1000);
 setInterval(() => {
   if (chartDirty) { chartDirty = false; drawChart(); }
   if (stripDirty) { stripDirty = false; drawStrip(); }
