@@ -24,8 +24,11 @@ PYTEST_ARGS ?= -m "not slow" -n 2 --dist loadfile
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml requirements.lock requirements-test.lock requirements-nodeps.txt scripts/install_system.sh
+$(STAMP): pyproject.toml requirements.lock requirements-test.lock requirements-nodeps.txt package-lock.json \
+		scripts/install_system.sh
 	bash scripts/install_system.sh
+	if command -v npm >/dev/null; then npm ci --no-audit --no-fund --loglevel=error; \
+	else echo "note: no npm: the page's avatar (render.mode=browser) and its tests need three.js (npm ci)"; fi
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PIP_INSTALL) --no-deps --retries 2 --extra-index-url $(TORCH_INDEX) $$(grep '^torch==' requirements.lock)
 	$(PIP_INSTALL) -r requirements.lock -r requirements-test.lock

@@ -93,7 +93,7 @@ def run(steps: int, warmup: int) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas bench engine", description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--steps", type=int, default=300, help="timed steps of each engine")
     parser.add_argument("--warmup", type=int, default=10, help="untimed steps first")

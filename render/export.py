@@ -58,7 +58,7 @@ def _body(body_model: str | None):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m render.export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="ecas export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     p.add_argument("motion", type=Path, help="motion npz (BEAT2 layout)")
     p.add_argument("--bvh", type=Path, metavar="OUT.bvh", help="write the motion as BVH")

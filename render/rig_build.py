@@ -188,7 +188,7 @@ def _vrm_extension(doc: dict, kind: str, bones: dict[str, int], target_names: li
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m render.rig_build", description=__doc__)
+    p = argparse.ArgumentParser(prog="ecas rig", description=__doc__)
     p.add_argument("kind", choices=("mixamo", "vrm1", "vrm0"))
     p.add_argument("out")
     args = p.parse_args(argv)

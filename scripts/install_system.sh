@@ -2,7 +2,9 @@
 # Debian packages the project needs; installs only what is missing (with sudo when not root).
 set -euo pipefail
 REQUIRED=(libosmesa6 libgl1 libegl1 libegl-mesa0 libportaudio2 espeak-ng libespeak-ng1 libsndfile1)
-OPTIONAL=(chromium)  # the dashboard's browser test; skipped with a reason when absent
+OPTIONAL=(chromium)  # the dashboard's browser tests; skipped with a reason when absent
+# npm installs three.js for the page's avatar (package.json); Debian's only where no Node.js is installed already
+command -v npm >/dev/null 2>&1 || OPTIONAL+=(nodejs npm)
 
 missing() { for p in "$@"; do dpkg -s "$p" >/dev/null 2>&1 || echo "$p"; done; }
 SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
