@@ -22,6 +22,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from agent.dashboard.access import access_middleware
 from agent.dashboard.events import BINARY_HEADER, BINARY_MIC, Event
 
 log = logging.getLogger(__name__)
@@ -236,8 +237,10 @@ def same_origin(request: web.Request) -> bool:
     return origin is None or urlsplit(origin).netloc == request.host
 
 
-def make_app(hub: Hub) -> web.Application:
-    app = web.Application()
+def make_app(hub: Hub, host: str = "127.0.0.1", token: str | None = None) -> web.Application:
+    """The page, its files, its state and its WebSocket, for requests that name `host` (agent.dashboard.access;
+    with `token`, only for requests that carry it)."""
+    app = web.Application(middlewares=[access_middleware(host, token)])
 
     async def index(_request: web.Request) -> web.FileResponse:
         return web.FileResponse(STATIC_DIR / "index.html")
