@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import socket
 import sys
 import tempfile
@@ -23,9 +24,11 @@ import yaml
 
 from agent.io.sources import NoAudioDevice, check_input_device
 from agent.latency import format_table
+from agent.report_lock import ReportLock
 from agent.sections import AppConfig, load_app_config
 from agent.stage import SUPERVISOR
 from agent.supervisor import Supervisor, run_worker
+from ecas.core.atomic import write_text_atomic
 from ecas.core.audio_file import AudioFileError, load_audio
 from ecas.core.bus import stage_address
 from ecas.core.component import RunContext
@@ -260,14 +263,47 @@ def main(argv=None) -> int:
     except (ConfigError, AudioFileError, NoAudioDevice) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USAGE
-    run_dir = app.run.make_report_dir(time.strftime("%Y%m%d-%H%M%S"))
-    (run_dir / "config.yaml").write_text(
-        yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False)
-    )
-    run = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
+    except OSError as e:  # e.g. no usable temporary directory on a full disk
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        run_dir, created = open_report_dir(app)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    lock = ReportLock(run_dir)
+    try:
+        lock.acquire()
+        write_text_atomic(
+            run_dir / "config.yaml", yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False)
+        )
+    except (ConfigError, OSError) as e:
+        lock.release()
+        if created and isinstance(e, OSError):
+            shutil.rmtree(run_dir, ignore_errors=True)
+        what = e if isinstance(e, ConfigError) else f"--report {run_dir}: cannot write there ({e.strerror or e})"
+        print(f"error: {what}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return run(app, args, run_dir)
+    finally:
+        lock.release()
+
+
+def open_report_dir(app: AppConfig) -> tuple[Path, bool]:
+    """The run's report directory, and whether this run created it; ConfigError (one line) when it cannot be."""
+    existed = bool(app.run.report_dir) and Path(app.run.report_dir).is_dir()
+    try:
+        return app.run.make_report_dir(time.strftime("%Y%m%d-%H%M%S")), not existed
+    except OSError as e:
+        raise ConfigError(f"--report {app.run.report_dir or 'runs/'}: cannot create it ({e.strerror or e})") from None
+
+
+def run(app: AppConfig, args: argparse.Namespace, run_dir: Path) -> int:
+    run_ctx = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
     if args.worker:
-        return run_worker(app, run)
-    supervisor = Supervisor(app, run)
+        return run_worker(app, run_ctx)
+    supervisor = Supervisor(app, run_ctx)
     code = supervisor.run()
     try:
         summary = supervisor.latency.write(

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ecas.core.atomic import atomic_file, write_text_atomic
 from ecas.core.body import COLLARS
 from ecas.core.component import RunContext
 from ecas.core.config import ConfigError
@@ -101,16 +102,21 @@ class GestureComponent:
         self._summarise()
         self.generator.close()
         self.run.run_dir.mkdir(parents=True, exist_ok=True)
-        (self.run.run_dir / STATS_FILE).write_text(json.dumps(self.summary, indent=2))
+        write_text_atomic(self.run.run_dir / STATS_FILE, json.dumps(self.summary, indent=2))
         if self.record:
             write_motion(self.run.run_dir / MOTION_FILE, self.record)
 
 
 def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:
-    """The generated steps as one npz (see the module docstring)."""
+    """The generated steps as one npz (see the module docstring), written atomically (ecas.core.atomic)."""
     poses = np.concatenate([s.poses for s in steps])  # (2T, 55, 3)
+    with atomic_file(path) as f:
+        _savez(f, steps, poses)
+
+
+def _savez(f, steps: Sequence[GestureStep], poses: np.ndarray) -> None:
     np.savez(
-        path,
+        f,
         poses=poses.reshape(len(poses), -1),
         trans=np.concatenate([s.trans for s in steps]),
         expressions=np.concatenate([s.expressions for s in steps]),

@@ -36,6 +36,7 @@ from agent.dashboard.events import (
 from agent.process import SupervisorWatch, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
+from ecas.core.atomic import write_text_atomic
 from ecas.core.bus import Publisher, Subscriber, stage_address
 from ecas.core.component import RunContext
 from ecas.core.messages import Command, Control, DialogueStep, Message, Metrics, MicAudio, RenderFrame
@@ -186,7 +187,7 @@ async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
     tls = (cfg.tls_cert, cfg.tls_key) if cfg.tls_cert else None
     runner, port = await start_server(make_app(bridge.hub, cfg.host, launch.token), cfg.host, cfg.port, tls)
     url = page_url(cfg.host, port, tls is not None, launch.token)
-    (launch.run.run_dir / URL_FILE).write_text(url + "\n")
+    write_text_atomic(launch.run.run_dir / URL_FILE, url + "\n")
     log.info("serving %s", url)
     next_beat = next_counters = 0.0
     try:
