@@ -24,12 +24,13 @@ import yaml
 
 from agent.io.sources import NoAudioDevice, check_input_device
 from agent.latency import format_table
+from agent.preflight import check_before_start, check_utf8_arguments
 from agent.report_lock import ReportLock
 from agent.sections import AppConfig, load_app_config
 from agent.stage import SUPERVISOR
 from agent.supervisor import Supervisor, run_worker
 from ecas.core.atomic import write_text_atomic
-from ecas.core.audio_file import AudioFileError, load_audio
+from ecas.core.audio_file import AudioFileError, load_audio, scan_audio
 from ecas.core.bus import stage_address
 from ecas.core.component import RunContext
 from ecas.core.config import ConfigError
@@ -137,7 +138,7 @@ def check_inputs(app: AppConfig) -> None:
     if app.io.source == "replay":
         if not app.io.replay_path:
             raise ConfigError("io.replay_path: no recording to replay (pass --replay FILE or --mic)")
-        load_audio(app.io.replay_path, SAMPLE_RATE_HZ)
+        scan_audio(app.io.replay_path)  # decoded once in constant memory; the io stage streams it again
     elif app.io.source == "mic":
         check_input_device(app.io.input_device)
 
@@ -248,6 +249,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     try:
+        check_utf8_arguments(sys.argv[1:] if argv is None else argv)
         speak_s = len(load_audio(args.speak, SAMPLE_RATE_HZ)) / SAMPLE_RATE_HZ if args.speak else None
         app = load_app_config(args.config, [*mode_overrides(args, speak_s), *args.overrides])
         check_report_dir(app)
@@ -257,6 +259,7 @@ def main(argv=None) -> int:
         check_inputs(app)
         check_checkpoints(app)
         check_weight_form(app)
+        check_before_start(app)
         check_mp4_target(app)
         app = with_free_tcp_ports(app)
         check_ports(app, args.worker)

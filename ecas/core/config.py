@@ -8,6 +8,7 @@ Every section's options are a frozen dataclass owned by its package (`dialogue.c
 from __future__ import annotations
 
 import dataclasses
+import stat
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -110,8 +111,18 @@ def apply_override(tree: dict, keys: list[str], value: Any) -> None:
     node[keys[-1]] = value
 
 
+MAX_CONFIG_BYTES = 16_000_000
+
+
 def load_yaml(path: Path) -> dict:
+    """A YAML mapping from a regular file: a named pipe or a device is refused before it is opened (a pipe with
+    no writer would block forever), and a file beyond MAX_CONFIG_BYTES is not read."""
     try:
+        mode = Path(path).stat().st_mode
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            raise ConfigError(f"{path}: is not a regular file (a named pipe or a device?); give a YAML file")
+        if Path(path).stat().st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES // 1_000_000} MB; not a config file")
         tree = yaml.safe_load(Path(path).read_text())
     except FileNotFoundError:
         raise ConfigError(f"config file not found: {path}") from None
