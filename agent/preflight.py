@@ -1,4 +1,5 @@
-"""Everything a stage would find wrong at its start, found by the launcher before any stage starts.
+"""Everything a stage would find wrong at its start, found by the launcher before any stage starts (in a forked
+child, so what the checks load never stays in the launcher).
 
 Each check raises ConfigError with one line naming the option: the command line's non-UTF-8 bytes, the
 `run.components` entries (imported), the gesture stage's checkpoints (every safetensors file opened, its
@@ -11,11 +12,16 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import os
+import signal
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from agent.sections import AppConfig
 from ecas.core.config import ConfigError
+
+PIPE_MESSAGE_BYTES = 4000  # below PIPE_BUF: the child's one line arrives whole
 
 
 def one_line(err: BaseException) -> str:
@@ -99,6 +105,36 @@ def check_render_stage(app: AppConfig) -> None:
 
 
 def check_before_start(app: AppConfig) -> None:
+    """Every check above, in a forked child: the checkpoints and their imports (torch, ~360 MB) stay out of the
+    launcher, which lives as long as the run. ConfigError with the child's one line."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: check, write the one line (or nothing), leave without the parent's exit handlers
+        os.close(read_end)
+        try:
+            _check_all(app)
+        except ConfigError as err:
+            os.write(write_end, str(err).encode("utf-8", "replace")[:PIPE_MESSAGE_BYTES])
+        except BaseException as err:  # anything else is still one line, never a traceback
+            os.write(write_end, f"the checks before the start failed ({one_line(err)})".encode()[:PIPE_MESSAGE_BYTES])
+        finally:
+            os._exit(0)
+    os.close(write_end)
+    with os.fdopen(read_end, "rb") as pipe:
+        message = pipe.read().decode("utf-8", "replace")
+    _, wait_status = os.waitpid(pid, 0)
+    if message:
+        raise ConfigError(message)
+    if os.WIFSIGNALED(wait_status):
+        raise ConfigError(
+            f"the checks before the start died ({signal.Signals(os.WTERMSIG(wait_status)).name}); "
+            "out of memory? see the system log"
+        )
+
+
+def _check_all(app: AppConfig) -> None:
     check_components(app)
     check_gesture_stage(app)
     check_render_stage(app)
