@@ -32,7 +32,7 @@ from agent.latency import LatencyRecorder
 from agent.process import COMPONENT_FACTORIES, StageLaunch, stage_main
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
-from ecas.core.bus import Publisher, Subscriber, stage_address
+from ecas.core.bus import Publisher, Subscriber, address_option, beyond_loopback, stage_address
 from ecas.core.component import RunContext
 from ecas.core.messages import Command, Control, Log, Metrics
 from ecas.core.timing import STEP_MS
@@ -125,11 +125,7 @@ class Supervisor:
             self._wait_for_start()
             self._send(Command.START)
             self.started_s = time.monotonic()
-            log.info(
-                "started: %s (bus: %s)",
-                " → ".join(self.pipeline),
-                self.ipc_dir if self.app.bus.transport == "ipc" else f"tcp {self.app.bus.host}",
-            )
+            log.info("started: %s (bus: %s)", " → ".join(self.pipeline), self._bus_description())
             self._watch()
         except RunFailed as e:
             self.error = str(e)
@@ -158,8 +154,20 @@ class Supervisor:
             ) from None
         addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
         self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
+        warn_public_listeners(self._listeners(), self.app)
         addresses += [self.dashboard.address] if self.dashboard else []
         self.sub = Subscriber(ctx, addresses, ["control", "metrics", "log"], live_queue=None)
+
+    def _listeners(self) -> dict[str, str]:
+        """Every bus endpoint this host binds: its stages, the supervisor and the dashboard."""
+        names = [*self.app.run.local_stages, SUPERVISOR] + ([DASHBOARD] if self.dashboard else [])
+        return {name: stage_address(name, self.app.bus, self.ipc_dir) for name in names}
+
+    def _bus_description(self) -> str:
+        listeners = self._listeners()
+        if all(address.startswith("ipc://") for address in listeners.values()):
+            return str(self.ipc_dir)
+        return ", ".join(f"{name} {address}" for name, address in listeners.items())
 
     def _on_signal(self, signum, _frame) -> None:
         self.interrupted = True
@@ -347,6 +355,19 @@ class Supervisor:
         return {name: status.counters for name, status in self.stages.items()}
 
 
+def warn_public_listeners(listeners: dict[str, str], app: AppConfig) -> None:
+    """One warning, naming the option, for every bus endpoint other machines can reach."""
+    for name, address in listeners.items():
+        if beyond_loopback(address):
+            log.warning(
+                "bus: %s listens on %s (%s): anyone who can reach this machine can read the conversation on it "
+                "and send messages into the run; keep it on 127.0.0.1 unless the run spans hosts",
+                name,
+                address,
+                address_option(name, app.bus),
+            )
+
+
 def spawn_stages(app: AppConfig, run: RunContext, ipc_dir: Path, factories: dict[str, str]) -> dict[str, mp.Process]:
     """Start this host's stages (`run.spawn`, default all), each in its own spawned process."""
     ctx = mp.get_context("spawn")
@@ -376,7 +397,9 @@ def run_worker(app: AppConfig, run: RunContext) -> int:
     """`launch.py --worker`: start this host's stages and wait; the supervisor on the main host drives them."""
     stop = []
     previous = {sig: signal.signal(sig, lambda *_: stop.append(1)) for sig in (signal.SIGINT, signal.SIGTERM)}
-    processes = spawn_stages(app, run, Path(tempfile.gettempdir()), {**COMPONENT_FACTORIES, **app.run.components})
+    ipc_dir = Path(tempfile.gettempdir())
+    warn_public_listeners({s: stage_address(s, app.bus, ipc_dir) for s in app.run.local_stages}, app)
+    processes = spawn_stages(app, run, ipc_dir, {**COMPONENT_FACTORIES, **app.run.components})
     log.info("worker running %s; waiting for the supervisor", ", ".join(processes))
     try:
         while not stop and any(p.is_alive() for p in processes.values()):
