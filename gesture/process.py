@@ -43,6 +43,7 @@ from gesture.lm.checkpoint import load_lm
 from gesture.lm.codecs import load_codecs
 from gesture.lm.idle import IdleGate, load_idle_slices
 from gesture.micro_motion import HeadDrift, MicroMotion, calibrated_micro_motion
+from gesture.motion_spool import MotionSpool
 from gesture.nn.weights import UnsupportedFormError, require_fast_form
 from gesture.stabilizer import ArmStabilizer
 
@@ -58,7 +59,7 @@ class GestureComponent:
         self.session: str | None = None
         self.step_ms: list[float] = []  # bounded: summarised and cleared every STATS_EVERY steps
         self.summary = {"steps": 0, "sessions": 0}
-        self.record: list[GestureStep] | None = None if run.live else []
+        self.record = None if run.live else MotionSpool(run.run_dir / MOTION_FILE)  # on disk: flat memory
 
     def handle(self, msg: Message) -> Sequence[Message]:
         if not isinstance(msg, DialogueStep):
@@ -103,8 +104,11 @@ class GestureComponent:
         self.generator.close()
         self.run.run_dir.mkdir(parents=True, exist_ok=True)
         write_text_atomic(self.run.run_dir / STATS_FILE, json.dumps(self.summary, indent=2))
-        if self.record:
-            write_motion(self.run.run_dir / MOTION_FILE, self.record)
+        if self.record is not None:
+            self.record.close(MOTION_FPS)
+
+    def partial_files(self) -> list[Path]:
+        return self.record.partial_files() if self.record is not None else []
 
 
 def write_motion(path: Path, steps: Sequence[GestureStep]) -> None:

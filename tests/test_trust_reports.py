@@ -17,7 +17,8 @@ from dialogue.transcript import Transcript, Turn
 from ecas.core.atomic import write_text_atomic
 from ecas.core.config import ConfigError
 from ecas.core.messages import N_GESTURE_TOKENS, GestureStep
-from gesture.process import write_motion
+from gesture.motion_spool import MotionSpool
+from gesture.process import MOTION_FPS, write_motion
 from tests.test_reliability_runtime import ipc_dirs, launch, recording
 from tests.test_reliability_usage import assert_one_line_and_nothing_left, launch_cmd, run_usage_error
 from tests.test_runtime import finish, leftovers
@@ -135,3 +136,22 @@ def test_a_full_disk_before_the_run_leaves_no_empty_config(tmp_path, talk):
 @pytest.fixture
 def talk(tmp_path) -> Path:
     return recording(tmp_path / "talk.wav", 1.0)
+
+
+def test_the_spooled_motion_record_equals_the_whole_one(tmp_path):
+    """The gesture stage's offline record goes to disk step by step (flat memory); motion.npz is the same file."""
+    recorded = steps(37)
+    for step in recorded:
+        step.tokens = np.arange(N_GESTURE_TOKENS, dtype=np.int32) * 1000 + step.step
+    write_motion(tmp_path / "whole.npz", recorded)
+    spool = MotionSpool(tmp_path / "motion.npz")
+    for step in recorded:
+        spool.append(step)
+    assert spool.partial_files() == [spool.spool_path] and spool.spool_path.exists()
+    spool.close(MOTION_FPS)
+    assert spool.partial_files() == [] and not spool.spool_path.exists()
+    with np.load(tmp_path / "whole.npz") as whole, np.load(tmp_path / "motion.npz") as spooled:
+        assert sorted(whole.files) == sorted(spooled.files)
+        for key in whole.files:
+            assert whole[key].dtype == spooled[key].dtype, key
+            np.testing.assert_array_equal(whole[key], spooled[key], err_msg=key)
