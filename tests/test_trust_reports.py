@@ -155,3 +155,23 @@ def test_the_spooled_motion_record_equals_the_whole_one(tmp_path):
         for key in whole.files:
             assert whole[key].dtype == spooled[key].dtype, key
             np.testing.assert_array_equal(whole[key], spooled[key], err_msg=key)
+
+
+def test_a_disk_that_fills_during_the_run_leaves_the_previous_reports(tmp_path):
+    """Case 4 during a run: the second run on a report folder cannot write all of its report (the size limit lies
+    between the first run's latency.json and its latency.png); every report file is the first run's or a whole new
+    one, never truncated, and no temporary file is left."""
+    report, talk = tmp_path / "run", recording(tmp_path / "talk.wav", 1.0)
+    code, output = finish(launch(["--replay", str(talk), "--fast"], report))
+    assert code == 0, output
+    first = {name: (report / name).read_bytes() for name in ("latency.json", "latency.png")}
+    limit = len(first["latency.png"]) // 2
+
+    def small_disk() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
+
+    code, output = finish(launch(["--replay", str(talk), "--fast"], report, preexec_fn=small_disk))
+    assert code == 1 and "error: cannot write the latency report" in output, output
+    assert (report / "latency.png").read_bytes() == first["latency.png"]  # the one that failed: the previous file
+    assert json.loads((report / "latency.json").read_text())  # written whole (it fits)
+    assert no_temporary_files(report) and not (report / LOCK_FILE).exists()
