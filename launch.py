@@ -178,18 +178,6 @@ def check_checkpoints(app: AppConfig) -> None:
             raise ConfigError(f"gesture.{key}: {path} is not a directory ({what})")
 
 
-def check_weight_form(app: AppConfig) -> None:
-    """A gesture.dtype this CPU cannot run fast: one warning line now, or (gesture.dtype_fallback false) a stop."""
-    from gesture.nn.weights import FAST_KERNEL_NEEDS, UnsupportedFormError, require_fast_form
-
-    if "gesture" not in app.run.local_stages or app.gesture.dtype not in FAST_KERNEL_NEEDS:
-        return
-    try:
-        require_fast_form(app.gesture.dtype, "gesture.dtype", app.gesture.dtype_fallback, "gesture.dtype_fallback")
-    except UnsupportedFormError as e:
-        raise ConfigError(str(e)) from None
-
-
 def with_free_tcp_ports(app: AppConfig) -> AppConfig:
     """`bus.base_port: 0`: every endpoint this run binds takes a port that is free now (an explicit
     `bus.endpoints.<name>` is kept), so two tcp runs on one host never collide."""
@@ -258,7 +246,6 @@ def main(argv=None) -> int:
         app = with_dialogue_spec(app)
         check_inputs(app)
         check_checkpoints(app)
-        check_weight_form(app)
         check_before_start(app)
         check_mp4_target(app)
         app = with_free_tcp_ports(app)

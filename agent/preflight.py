@@ -93,6 +93,18 @@ def check_gesture_stage(app: AppConfig) -> None:
     generator.close()
 
 
+def check_weight_form(app: AppConfig) -> None:
+    """A gesture.dtype this CPU cannot run fast: one warning line now, or (gesture.dtype_fallback false) a stop."""
+    from gesture.nn.weights import FAST_KERNEL_NEEDS, UnsupportedFormError, require_fast_form
+
+    if "gesture" not in app.run.local_stages or app.gesture.dtype not in FAST_KERNEL_NEEDS:
+        return
+    try:
+        require_fast_form(app.gesture.dtype, "gesture.dtype", app.gesture.dtype_fallback, "gesture.dtype_fallback")
+    except UnsupportedFormError as e:
+        raise ConfigError(str(e)) from None
+
+
 def check_render_stage(app: AppConfig) -> None:
     if "render" not in app.run.local_stages or "render" in app.run.components or not app.render.body_model:
         return
@@ -136,5 +148,6 @@ def check_before_start(app: AppConfig) -> None:
 
 def _check_all(app: AppConfig) -> None:
     check_components(app)
+    check_weight_form(app)
     check_gesture_stage(app)
     check_render_stage(app)
