@@ -1,4 +1,5 @@
-"""End-to-end and per-stage latency from the stamps the stages add to each message header.
+"""End-to-end and per-stage latency from the stamps the stages add to each message header: computed here once,
+for the run's report (`LatencyRecorder`) and the dashboard's live chart (`agent.dashboard.events.LatencyMeter`).
 
 The end-to-end latency of a step is `sink stamp of the step's last frame − t_origin_ns` (the capture time of
 the step's last audio sample). Each stage's share is split into `wait` (transport and queueing since the
@@ -13,16 +14,16 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ecas.core.atomic import atomic_file, write_text_atomic
 from ecas.core.messages import Metrics
-from ecas.core.timing import FRAMES_PER_STEP
+from ecas.core.timing import FRAMES_PER_STEP, NS_PER_MS
 
 PERCENTILES = (50, 95, 99)
-NS_PER_MS = 1e6
 
 
 def percentiles(values: Sequence[float]) -> dict[str, float]:
@@ -34,7 +35,52 @@ def percentiles(values: Sequence[float]) -> dict[str, float]:
     return out
 
 
+@dataclass(frozen=True)
+class StepLatency:
+    """One step's latency on the supervisor's clock, in ms: end to end, and per stage its wait (since the previous
+    stage published, or since capture), compute (taking the message to publishing) and total (the two together)."""
+
+    step: int
+    e2e_ms: float
+    wait_ms: dict[str, float]
+    compute_ms: dict[str, float]
+    total_ms: dict[str, float]
+
+
+def to_reference_clock(t_ns: int, stage: str, offsets_ns: dict[str, int]) -> int:
+    """A stage's monotonic time `t_ns` on the supervisor's clock (`offsets_ns`: stage clock minus supervisor's)."""
+    return t_ns - offsets_ns.get(stage, 0)
+
+
+def origin_offset_ns(own: str, origin: str, offsets_ns: dict[str, int]) -> int:
+    """What to add to a capture time stamped on the `origin` stage's clock to read it on the `own` stage's clock."""
+    return offsets_ns.get(own, 0) - offsets_ns.get(origin, 0)
+
+
+def step_latency(msg: Metrics, pipeline: Sequence[str], offsets_ns: dict[str, int]) -> StepLatency | None:
+    """The latency of the step a sink's Metrics closes, or None if it does not close one (a render stage's first
+    frame of a step, or stamps missing a stage). Stamps `<stage>` and `<stage>.in` are moved to the supervisor's
+    clock with the stages' measured offsets, so stages on different hosts compare."""
+    if pipeline[-1] == "render" and msg.values.get("frame_index", 0) != FRAMES_PER_STEP - 1:
+        return None
+    stamps = {key: to_reference_clock(t, key.split(".")[0], offsets_ns) for key, t in msg.stamps.items()}
+    if any(stage not in stamps for stage in pipeline):
+        return None
+    origin = to_reference_clock(msg.t_origin_ns, pipeline[0], offsets_ns)
+    wait, compute, total = {}, {}, {}
+    previous = origin
+    for stage in pipeline:
+        taken = stamps.get(f"{stage}.in", previous)
+        wait[stage] = (taken - previous) / NS_PER_MS
+        compute[stage] = (stamps[stage] - taken) / NS_PER_MS
+        total[stage] = (stamps[stage] - previous) / NS_PER_MS
+        previous = stamps[stage]
+    return StepLatency(msg.step, (stamps[pipeline[-1]] - origin) / NS_PER_MS, wait, compute, total)
+
+
 class LatencyRecorder:
+    """Every measured step of a run, for its report (`latency.json`, `latency.png` and the terminal table)."""
+
     def __init__(self, pipeline: Sequence[str]):
         self.pipeline = tuple(pipeline)
         self.steps: list[int] = []
@@ -44,23 +90,16 @@ class LatencyRecorder:
         }
 
     def add(self, msg: Metrics, offsets_ns: dict[str, int]) -> None:
-        """Record one sink output, if it is its step's last frame; stamps are moved to the supervisor clock."""
-        if self.pipeline[-1] == "render" and msg.values.get("frame_index", 0) != FRAMES_PER_STEP - 1:
+        """Record one sink output, if it is its step's last frame."""
+        latency = step_latency(msg, self.pipeline, offsets_ns)
+        if latency is None:
             return
-        stamps = {key: t - offsets_ns.get(key.split(".")[0], 0) for key, t in msg.stamps.items()}
-        if any(s not in stamps for s in self.pipeline):
-            return
-        origin = msg.t_origin_ns - offsets_ns.get(self.pipeline[0], 0)
-        self.steps.append(msg.step)
-        self.e2e_ms.append((stamps[self.pipeline[-1]] - origin) / NS_PER_MS)
-        previous = origin
-        for stage in self.pipeline:
-            taken = stamps.get(f"{stage}.in", previous)
-            seg = self.segments_ms[stage]
-            seg["wait"].append((taken - previous) / NS_PER_MS)
-            seg["compute"].append((stamps[stage] - taken) / NS_PER_MS)
-            seg["total"].append((stamps[stage] - previous) / NS_PER_MS)
-            previous = stamps[stage]
+        self.steps.append(latency.step)
+        self.e2e_ms.append(latency.e2e_ms)
+        for stage, seg in self.segments_ms.items():
+            seg["wait"].append(latency.wait_ms[stage])
+            seg["compute"].append(latency.compute_ms[stage])
+            seg["total"].append(latency.total_ms[stage])
 
     def summary(
         self, counters: dict[str, dict], clock: dict[str, dict], timing: dict | None = None, live: bool = True
@@ -167,11 +206,7 @@ def format_table(summary: dict) -> str:
         )
     e2e = summary["end_to_end_ms"]
     rows.append(("end to end", *(_fmt(e2e.get(k)) for k in ("p50", "p95", "p99", "max")), "1", "", ""))
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = [
-        "  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths))) for r in rows
-    ]
-    lines.insert(1, "-" * len(lines[0]))
+    lines = _aligned(rows)
     stream = summary.get("stream") or {}
     pace = (
         (
@@ -199,11 +234,7 @@ def format_offline_table(summary: dict) -> str:
                 str(c.get("lost", 0)),
             )
         )
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = [
-        "  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths))) for r in rows
-    ]
-    lines.insert(1, "-" * len(lines[0]))
+    lines = _aligned(rows)
     t = summary.get("throughput") or {}
     head = "offline run (paced by the credit window: throughput, not latency)"
     if t.get("realtime_factor") is not None:
@@ -227,6 +258,13 @@ def format_offline_table(summary: dict) -> str:
 
 def summary_source(summary: dict) -> str:
     return next(iter(summary["stages"]))
+
+
+def _aligned(rows: list[tuple[str, ...]]) -> list[str]:
+    """Rows as text columns: the first left-aligned, the others right-aligned; a rule under the header."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in rows]
+    return [lines[0], "-" * len(lines[0]), *lines[1:]]
 
 
 def _fmt(value) -> str:

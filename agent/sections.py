@@ -21,7 +21,7 @@ class IoConfig:
     """The user's side: where the user's audio comes from and whether the agent is heard."""
 
     source: Literal["mic", "replay", "silence"] = "replay"
-    replay_path: str | None = None
+    replay_path: Path | None = None
     tail_silence_s: float = 6.0  # after a replay, so the agent can answer the last words
     silence_s: float = 10.0  # length of a `silence` source
     speaker: bool = False
@@ -45,7 +45,7 @@ class RunConfig:
 
     live: bool = True
     seed: int = 0
-    report_dir: str | None = None  # default: a new runs/<time>-<suffix>/
+    report_dir: Path | None = None  # default: a new runs/<time>-<suffix>/
     stages: tuple[str, ...] = STAGES
     spawn: tuple[str, ...] | None = None
     components: dict[str, str] = field(default_factory=dict)

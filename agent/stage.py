@@ -29,19 +29,25 @@ from pathlib import Path
 
 import zmq
 
+from agent.latency import origin_offset_ns
 from agent.sections import AppConfig
 from ecas.core.bus import Publisher, Subscriber, stage_address
 from ecas.core.component import Component, RunContext, Source, StageFailed
-from ecas.core.messages import AudioUser, Command, Control, Message, Metrics, StageState
-from ecas.core.timing import STEP_NS
+from ecas.core.messages import AudioUser, Command, Control, Kind, Message, Metrics, StageState
+from ecas.core.timing import NS_PER_MS, STEP_NS
 
 log = logging.getLogger(__name__)
 
-OUTPUT_TOPIC = {"io": "audio.user", "dialogue": "dialogue.step", "gesture": "gesture.step", "render": "render.frame"}
+OUTPUT_TOPIC = {
+    "io": Kind.AUDIO_USER.value,
+    "dialogue": Kind.DIALOGUE_STEP.value,
+    "gesture": Kind.GESTURE_STEP.value,
+    "render": Kind.RENDER_FRAME.value,
+}
 DATA_INPUTS = {  # stage -> {upstream stage: topic}; the io stage's speaker input is added when enabled
-    "dialogue": {"io": "audio.user"},
-    "gesture": {"dialogue": "dialogue.step"},
-    "render": {"dialogue": "dialogue.step", "gesture": "gesture.step"},
+    "dialogue": {"io": OUTPUT_TOPIC["io"]},
+    "gesture": {"dialogue": OUTPUT_TOPIC["dialogue"]},
+    "render": {"dialogue": OUTPUT_TOPIC["dialogue"], "gesture": OUTPUT_TOPIC["gesture"]},
 }
 SUPERVISOR = "supervisor"
 MAX_POLL_MS = 50
@@ -59,7 +65,7 @@ class Topology:
     def of(cls, stage: str, pipeline: Sequence[str], speaker: bool = False) -> Topology:
         inputs = {up: topic for up, topic in DATA_INPUTS.get(stage, {}).items() if up in pipeline}
         if stage == "io" and speaker and "dialogue" in pipeline:
-            inputs["dialogue"] = "dialogue.step"
+            inputs["dialogue"] = OUTPUT_TOPIC["dialogue"]
         return cls(stage, tuple(pipeline), inputs)
 
     @property
@@ -97,7 +103,7 @@ class StageRunner:
         self.source = source
         self.ctx = zmq.Context.instance()
         self.pub = Publisher(self.ctx, stage_address(self.name, self.bus, ipc_dir), self.name, lossless=not run.live)
-        topics = ["control", *set(topology.data_inputs.values())]
+        topics = [Kind.CONTROL.value, *set(topology.data_inputs.values())]
         addresses = [stage_address(peer, self.bus, ipc_dir) for peer in sorted(topology.peers)]
         queue = self.bus.live_queue_steps * max(1, len(topology.data_inputs))  # steps of every input topic
         self.sub = Subscriber(self.ctx, addresses, topics, live_queue=queue if run.live else None)
@@ -177,6 +183,11 @@ class StageRunner:
             self.state = StageState.RUNNING
             self.started = True
             self.source_t0_ns = time.monotonic_ns()
+            set_offset = getattr(self.component, "set_origin_offset_ns", None)  # ecas.core.component.ClockAware
+            if set_offset is not None:
+                set_offset(
+                    origin_offset_ns(self.name, self.topology.pipeline[0], msg.detail.get("clock_offsets_ns", {}))
+                )
         elif msg.command == Command.STOP:
             self.stopping = True
         elif msg.command == Command.PING and msg.detail.get("to") == self.name:
@@ -294,7 +305,7 @@ class StageRunner:
     def _due_in_ms(self) -> float:
         """Until the step's last sample is 'captured' (live replay); never early, so t_origin is in the past."""
         due_ns = self.source_t0_ns + (self.next_step + 1) * STEP_NS
-        return (due_ns - time.monotonic_ns()) / 1e6 if self.run_ctx.live else 0.0
+        return (due_ns - time.monotonic_ns()) / NS_PER_MS if self.run_ctx.live else 0.0
 
     def _waiting_for_credit(self) -> bool:
         """Offline: the source is a whole credit window ahead of the sink."""

@@ -34,7 +34,7 @@ from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
 from ecas.core.bus import Publisher, Subscriber, address_option, beyond_loopback, stage_address
 from ecas.core.component import RunContext
-from ecas.core.messages import Command, Control, Log, Metrics
+from ecas.core.messages import Command, Control, Kind, Log, Metrics
 from ecas.core.timing import STEP_MS
 
 log = logging.getLogger("supervisor")
@@ -123,7 +123,7 @@ class Supervisor:
             self._wait_ready()
             self._sync_clocks()
             self._wait_for_start()
-            self._send(Command.START)
+            self._send(Command.START, {"clock_offsets_ns": self.clock.offsets_ns()})
             self.started_s = time.monotonic()
             log.info("started: %s (bus: %s)", " → ".join(self.pipeline), self._bus_description())
             self._watch()
@@ -156,7 +156,9 @@ class Supervisor:
         self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
         warn_public_listeners(self._listeners(), self.app)
         addresses += [self.dashboard.address] if self.dashboard else []
-        self.sub = Subscriber(ctx, addresses, ["control", "metrics", "log"], live_queue=None)
+        self.sub = Subscriber(
+            ctx, addresses, [k.value for k in (Kind.CONTROL, Kind.METRICS, Kind.LOG)], live_queue=None
+        )
 
     def _listeners(self) -> dict[str, str]:
         """Every bus endpoint this host binds: its stages, the supervisor and the dashboard."""

@@ -23,6 +23,7 @@ from bench.machine import machine_report
 from ecas.core.bus import Publisher, Subscriber
 from ecas.core.messages import Command, Control, GestureStep, RenderFrame
 from ecas.core.threads import limit_threads
+from ecas.core.timing import NS_PER_MS
 
 FRAME_SIDE = 512
 
@@ -84,7 +85,7 @@ def measure(address: str, kind: str, count: int, spacing_s: float) -> dict:
         sub.controls.clear()
         while sub.queue:
             msg = sub.queue.popleft()
-            latencies_ms.append((now - msg.t_ns) / 1e6)
+            latencies_ms.append((now - msg.t_ns) / NS_PER_MS)
             first_sent_ns = first_sent_ns or msg.t_ns
             last_ns = now
     finished.set()
@@ -113,7 +114,9 @@ def run(count: int) -> dict:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="ecas bench bus", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--count", type=int, default=2000, help="messages per measurement")
     p.add_argument("--json", action="store_true", help="print JSON only")
     args = p.parse_args(argv)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -39,7 +38,6 @@ from gesture.codec.inference import INFERENCE_DTYPES, inference_codec
 from gesture.codec.streaming import StreamingDecoder
 from gesture.nn.weights import kernels_used, stored_weights
 
-REPO = Path(__file__).resolve().parents[1]
 CONFIG_DIR = CONFIGS_DIR / "codec"
 SHIPPED_CODECS = CHECKPOINTS_DIR / "codecs"
 BEAT2_CLIP = data_root() / "beat2" / "2_scott_0_1_1.npz"
@@ -131,7 +129,7 @@ def quality(dtypes: list[str]) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas bench codec", description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["reference", "small"])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=30)

@@ -3,10 +3,11 @@
     python -m bench.gesture_step --json
 
 For the reference size (paper LM conditioned on Moshi's vocabulary, reference codecs) and the small CPU size
-(ecas/configs/lm/small.yaml + ecas/configs/codec/small.yaml), it times the cached generator with float32, bfloat16 and int8
-weights (`gesture.nn.weights`; the codecs' decoders in float32, float16 and int8), each with the kernels this CPU
-runs (recorded per generator), interleaved step by step, next to a naive baseline in the same run that recomputes the temporal transformer over its full receptive field
-and every depth position at every level, without caches. Weights are random: the matrix products do not depend on
+(ecas/configs/lm/small.yaml + ecas/configs/codec/small.yaml), it times the cached generator with float32, bfloat16
+and int8 weights (`gesture.nn.weights`; the codecs' decoders in float32, float16 and int8), each with the kernels
+this CPU runs (recorded per generator), interleaved step by step, next to a naive baseline in the same run that
+recomputes the temporal transformer over its full receptive field and every depth position at every level, without
+caches. Weights are random: the matrix products do not depend on
 them, and random logits are flat, the worst case of top-p (a nucleus of ~1600 of 2049 tokens). Reports
 median/p95/p99 in ms of wall time and of the thread's CPU time (on a shared machine the CPU time is the cost of
 the work itself; the wall time adds waiting for a core), for the whole step and for the LM part alone (20 tokens
@@ -92,7 +93,7 @@ def time_parts(gens: dict[str, GestureGenerator], steps: int) -> dict:
                 start, start_cpu = time.perf_counter(), time.thread_time()
                 tokens, _ = gen._sample_tokens(text, torch.as_tensor(audio, dtype=torch.long))
                 mid, mid_cpu = time.perf_counter(), time.thread_time()
-                gen.history = tokens
+                gen.state.history.copy_(tokens)
                 gen._decode(tokens)
                 lm_wall[name].append((mid - start) * 1e3)
                 lm_cpu[name].append((mid_cpu - start_cpu) * 1e3)
@@ -150,7 +151,7 @@ def bench_size(name: str, steps: int, naive_steps: int, bandwidth_gbps: float) -
 
 def main(argv: list[str] | None = None) -> None:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas bench gesture-step", description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--steps", type=int, default=200, help="timed steps of the cached generator")
     parser.add_argument("--naive-steps", type=int, default=10, help="timed steps of the naive baseline")

@@ -3,7 +3,7 @@
     python -m bench.quality --json [--seeds 0 1 2 3 4] [--suite] [--config YAML] [--out runs/bench_quality]
         [--beat2 BEAT2_ROOT [--speaker scott] [--split test] [--takes ID ...]]
 
-For each seed it runs the realism report on the real BEAT2 clip (`python -m gesture.realism --seed N --no-video`,
+For each seed it runs the realism report on the real BEAT2 clip (`ecas realism --seed N --no-video`,
 about 5 minutes a minute of speech) and summarises issue 18's goals for the agent: which hold
 (gesture.eval.realism.goal_check), the ratios to the real speaker that fall outside 0.67-1.5, L1div, BeatAlign
 against the real clip and the share of quick motion per joint group and of the hands' paths; and, per take, which
@@ -11,7 +11,7 @@ goal ratios the speaker's own second half has outside 0.67-1.5 against his first
 `--beat2` measures the takes of a BEAT2 release directory instead (gesture.data.beat2's layouts; those of
 `--speaker` in `--split` that have speech, or `--takes`), each take against its own real motion, and adds the median
 of every goal ratio over takes and seeds: the held-out measurement issue 18 asks for. `--suite` adds the held-out
-synthetic suite (`python -m gesture.evaluate --suite default`, 10-25 minutes) and its six goals. The machine report
+synthetic suite (`ecas evaluate --suite default`, 10-25 minutes) and its six goals. The machine report
 comes first: the numbers are quality, not time, but the agent runs in real time through `launch.py`, and a loaded
 machine is worth knowing about. `--config` measures another agent (an app config such as ecas/configs/default.yaml
 pointing at other checkpoints) in both reports.
@@ -34,8 +34,6 @@ from ecas.core.paths import DEFAULT_CONFIG
 from ecas.core.threads import limit_threads
 from gesture.data.beat2 import SPLITS, Take, find_takes
 from gesture.eval.realism import GOAL_GROUPS, GROUP_GOAL_RANGE
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def seed_summary(report: dict) -> dict:
@@ -70,7 +68,7 @@ def run_realism(seed: int, out: Path, config: Path, take: Take | None = None) ->
         [
             sys.executable,
             "-m",
-            "gesture.realism",
+            "gesture.eval.realism",
             "--seed",
             str(seed),
             "--no-video",
@@ -80,7 +78,6 @@ def run_realism(seed: int, out: Path, config: Path, take: Take | None = None) ->
             str(run_dir),
             *clip,
         ],
-        cwd=ROOT,
         check=True,
         stdout=subprocess.DEVNULL,
     )
@@ -120,8 +117,17 @@ def pooled(summaries: Sequence[dict], reports: Sequence[dict]) -> dict:
 def run_suite(out: Path, config: Path) -> dict:
     path = out / "suite.json"
     subprocess.run(
-        [sys.executable, "-m", "gesture.evaluate", "--suite", "default", "--config", str(config), "--out", str(path)],
-        cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "gesture.eval.evaluate",
+            "--suite",
+            "default",
+            "--config",
+            str(config),
+            "--out",
+            str(path),
+        ],
         check=True,
         stdout=subprocess.DEVNULL,
     )
@@ -131,11 +137,11 @@ def run_suite(out: Path, config: Path) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m bench.quality", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas bench quality", description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--suite", action="store_true", help="also the held-out synthetic suite (slow)")
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="the agent's app config")
-    p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench_quality")
+    p.add_argument("--out", type=Path, default=Path("runs") / "bench_quality")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--beat2", type=Path, help="measure this BEAT2 directory's takes instead of the shared clip")
     p.add_argument("--speaker", default="scott", help="with --beat2: the speaker whose takes (default %(default)s)")

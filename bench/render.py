@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ecas.core.paths import real_clip
+
 SIZES = ((256, 256), (512, 512), (1280, 720))
 PLATFORMS = ("osmesa", "egl")
 PATHS = ("in_place", "new_mesh")
@@ -31,10 +33,10 @@ PATHS = ("in_place", "new_mesh")
 
 def _motion(n_frames: int):
     from render.play import load_motion_25fps
-    from render.testing import BEAT2_NPZ
 
-    if BEAT2_NPZ.is_file():
-        poses, trans, expressions, _ = load_motion_25fps(BEAT2_NPZ)
+    clip_npz = real_clip().with_suffix(".npz")
+    if clip_npz.is_file():
+        poses, trans, expressions, _ = load_motion_25fps(clip_npz)
         return poses[:n_frames], trans[:n_frames], expressions[:n_frames]
     rng = np.random.default_rng(0)  # without the shared clip: smooth random motion around a standing pose
     poses = np.cumsum(rng.normal(0, 0.01, (n_frames, 55, 3)), axis=0).astype(np.float32)
@@ -133,14 +135,14 @@ def _run_worker(args: list[str]) -> dict:
 
 def mp4_throughput(seconds: float | None) -> dict:
     from render.play import render_motion
-    from render.testing import BEAT2_NPZ, BEAT2_WAV
 
-    if not BEAT2_NPZ.is_file():
-        return {"error": f"{BEAT2_NPZ} not present"}
+    clip_npz, clip_wav = real_clip().with_suffix(".npz"), real_clip().with_suffix(".wav")
+    if not clip_npz.is_file():
+        return {"error": f"{clip_npz} not present"}
     with tempfile.TemporaryDirectory() as tmp:
         stats = render_motion(
-            BEAT2_NPZ,
-            BEAT2_WAV,
+            clip_npz,
+            clip_wav,
             Path(tmp) / "clip.mp4",
             width=512,
             height=512,
@@ -151,7 +153,7 @@ def mp4_throughput(seconds: float | None) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.render", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas bench render", description=__doc__.splitlines()[0])
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--frames", type=int, default=60, help="timed frames per size and path")
     p.add_argument(

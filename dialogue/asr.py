@@ -82,10 +82,6 @@ class StreamingAsr:
         """No more audio for this utterance; the final hypothesis comes once the backlog is decoded."""
         self._finishing = self.active
 
-    def abandon(self) -> None:
-        """Drop the open utterance (a false start)."""
-        self.reset()
-
     def advance(self) -> list[RecognizedWord] | None:
         """Decode up to the budget; returns the final words when a finished utterance completes, else None."""
         if not self.active:

@@ -1,6 +1,7 @@
 """Options of the `dialogue:` section of the YAML config."""
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 from ecas.core.config import ConfigError
@@ -28,6 +29,31 @@ class VadConfig:
         )
         _require(self.start_s >= 0, "vad.start_s", f"must be >= 0, got {self.start_s}")
         _require(self.stop_s > 0, "vad.stop_s", f"must be > 0, got {self.stop_s}")
+
+
+@dataclass(frozen=True)
+class TurnConfig:
+    """When the user's turn ends (dialogue/end_of_turn.py).
+
+    detector "silence": after `vad.stop_s` of silence. "smart_turn": after `min_wait_s` of silence the smart-turn
+    model judges the user's recent audio; a probability >= `threshold` ends the turn there, otherwise the agent
+    keeps listening until the user speaks again or `max_wait_s` of silence have passed.
+    """
+
+    detector: Literal["silence", "smart_turn"] = "smart_turn"
+    threshold: float = 0.5  # probability of a complete turn that ends it
+    min_wait_s: float = 0.2  # silence before the model is asked
+    max_wait_s: float = 2.0  # silence after which the turn ends anyway
+    model: str | None = None  # an ONNX file; None: ecas/checkpoints/smart_turn/smart-turn-v3.2-cpu.onnx
+
+    def __post_init__(self):
+        _require(0 < self.threshold < 1, "turn.threshold", f"must be in (0, 1), got {self.threshold}")
+        _require(0 < self.min_wait_s <= 2.0, "turn.min_wait_s", f"must be in (0, 2], got {self.min_wait_s}")
+        _require(
+            self.min_wait_s <= self.max_wait_s <= 10.0,
+            "turn.max_wait_s",
+            f"must be in [min_wait_s, 10] = [{self.min_wait_s}, 10], got {self.max_wait_s}",
+        )
 
 
 @dataclass(frozen=True)
@@ -107,8 +133,8 @@ class ResponderConfig:
 class PlaybackConfig:
     """The agent speaks a recording; text tokens from `transcript` (whisper json, TextGrid or plain text)."""
 
-    speak: str | None = None
-    transcript: str | None = None
+    speak: Path | None = None
+    transcript: Path | None = None
     start_s: float = 0.0  # when the agent starts speaking, from the first step
 
 
@@ -116,11 +142,11 @@ class PlaybackConfig:
 class MoshiConfig:
     """Local files only: the LM weights, Mimi weights and the sentencepiece text tokenizer."""
 
-    lm_weights: str | None = None  # e.g. model.safetensors
-    mimi_weights: str | None = None  # e.g. tokenizer-e351c8d8-checkpoint125.safetensors
-    tokenizer: str | None = None  # e.g. tokenizer_spm_32k_3.model
-    lm_config: str | None = None  # a json of LM kwargs for non-default model sizes (None: Moshi 7B)
-    mimi_config: str | None = None  # a json of Mimi kwargs (None: the released Mimi)
+    lm_weights: Path | None = None  # e.g. model.safetensors
+    mimi_weights: Path | None = None  # e.g. tokenizer-e351c8d8-checkpoint125.safetensors
+    tokenizer: Path | None = None  # e.g. tokenizer_spm_32k_3.model
+    lm_config: Path | None = None  # a json of LM kwargs for non-default model sizes (None: Moshi 7B)
+    mimi_config: Path | None = None  # a json of Mimi kwargs (None: the released Mimi)
     device: str = "cpu"
     temp: float = 0.8
     temp_text: float = 0.7
@@ -137,9 +163,10 @@ class MoshiConfig:
 class DialogueConfig:
     backend: Literal["local", "moshi", "playback"] = "local"
     barge_in_s: float = 0.3  # user speech over the agent longer than this stops the agent
-    speech_tokenizer: str | None = None  # None: ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
+    speech_tokenizer: Path | None = None  # None: ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
     transcript_name: str = "transcript.json"
     vad: VadConfig = field(default_factory=VadConfig)
+    turn: TurnConfig = field(default_factory=TurnConfig)
     echo: EchoConfig = field(default_factory=EchoConfig)
     asr: AsrConfig = field(default_factory=AsrConfig)
     tts: TtsConfig = field(default_factory=TtsConfig)

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dialogue.asr import RecognizedWord, StreamingAsr
-from dialogue.config import AsrConfig, EchoConfig, VadConfig
+from dialogue.config import AsrConfig, EchoConfig, TurnConfig, VadConfig
 from dialogue.echo import EchoGate
 from dialogue.resample import StreamResampler
 from dialogue.vad import VAD_CHUNK_S, VAD_RATE_HZ, SileroVad, VadEvent, VadStateMachine
@@ -32,11 +32,11 @@ class Heard:
 
 
 class UserListener:
-    def __init__(self, vad: VadConfig, echo: EchoConfig, asr: AsrConfig | None):
+    def __init__(self, vad: VadConfig, echo: EchoConfig, asr: AsrConfig | None, turn: TurnConfig | None = None):
         self.resample_user = StreamResampler(SAMPLE_RATE_HZ, VAD_RATE_HZ)
         self.resample_agent = StreamResampler(SAMPLE_RATE_HZ, VAD_RATE_HZ)
         self.vad = SileroVad()
-        self.turns = VadStateMachine(vad.start_threshold, vad.stop_threshold, vad.start_s, vad.stop_s)
+        self.turns = VadStateMachine.from_config(vad, turn)  # turn None: the turn ends after vad.stop_s of silence
         self.echo = EchoGate(VAD_RATE_HZ, echo.max_delay_s, echo.margin_db, STEP_16K) if echo.mode == "gate" else None
         self.asr = (
             None
@@ -80,6 +80,7 @@ class UserListener:
                 self.echo.push_reference(self.resample_agent.process(agent_pcm_played))
             mic, user_dominant = self.echo.process(mic)
         self._history = np.concatenate([self._history[len(mic) :], mic])
+        self.turns.hear(mic)
         self._t_s += len(mic) / VAD_RATE_HZ
         events = []
         already_listening = self.asr is not None and self.asr.active  # a new utterance's pre-roll holds this block

@@ -1,6 +1,8 @@
 """The default backend, CPU and offline: VAD + pocketsphinx -> responder -> espeak-ng, with speech codes.
 
-Turn taking: the user's turn ends after `vad.stop_s` of silence; once its words are recognised the
+Turn taking: at each pause of the user the end-of-turn model judges whether the turn is complete (`turn.detector`
+smart_turn, docs/turn_taking.md; with `silence`, the turn ends after `vad.stop_s`); while the user pauses mid-turn
+nothing is sent to the responder. Once a finished turn's words are recognised the
 responder's sentences are spoken. User speech over the agent for `barge_in_s` cuts the agent at once and
 that user turn is answered; shorter overlaps (backchannels) are transcribed but not answered.
 """
@@ -103,7 +105,7 @@ class LocalBackend(ListeningBackend):
         tts = EspeakTts(cfg.tts.voice, cfg.tts.rate_wpm, cfg.tts.pitch)
         tts.synthesize("Hello.")  # loads the voice now, and fails early on a bad one
         backend = cls(
-            UserListener(cfg.vad, cfg.echo, cfg.asr),
+            UserListener(cfg.vad, cfg.echo, cfg.asr, cfg.turn),
             tts,
             responder,
             load_speech_tokenizer(cfg.speech_tokenizer),

@@ -12,12 +12,6 @@ def lowpass_taps(up: int, down: int) -> np.ndarray:
     return (firwin(2 * half_len + 1, 1.0 / max(up, down), window=("kaiser", 5.0)) * up).astype(np.float64)
 
 
-def resample_causal(x: np.ndarray, in_rate_hz: int, out_rate_hz: int) -> np.ndarray:
-    """Offline reference of `StreamResampler`: the same causal filter over the whole signal."""
-    stream = StreamResampler(in_rate_hz, out_rate_hz)
-    return stream.process(x)
-
-
 class StreamResampler:
     """Resamples blocks of any length; block-by-block output equals whole-signal output exactly.
 

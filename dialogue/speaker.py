@@ -57,10 +57,6 @@ class Speaker:
         """A reply is in progress (audio to play, text to synthesise, or more text coming)."""
         return self._reply_open or bool(self._texts) or self._buf.size > 0
 
-    @property
-    def speaking_turn(self) -> Turn | None:
-        return self._turn
-
     def begin_reply(self) -> None:
         self._reply_open = True
 

@@ -1,6 +1,7 @@
 """Train the small causal speech tokenizer on espeak-ng voices and the real recordings in ../shared/data.
 
-    nice -n 10 python -m dialogue.train_speech_tokenizer --out ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
+    nice -n 10 python -m dialogue.train_speech_tokenizer \
+        --out ecas/checkpoints/speech_tokenizer/speech_tokenizer.safetensors
 
 Objective: log-mel reconstruction (L1) through an 8-level EMA residual VQ with quantizer dropout,
 plus a commitment term. Held out: librivox_0870.wav (real read speech) and unseen espeak sentences.
@@ -19,12 +20,12 @@ from scipy.signal import resample_poly
 
 from dialogue.speech_tokenizer import DEFAULT_CHECKPOINT, SpeechTokenizer, TokenizerShape
 from dialogue.tts import EspeakTts
-from ecas.core.paths import data_root
+from ecas.core.paths import REAL_CLIP_ID, data_root
 from ecas.core.threads import limit_threads
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 SHARED_DATA = data_root()
-TRAIN_RECORDINGS = ("beat2/2_scott_0_1_1.wav",)
+TRAIN_RECORDINGS = (f"beat2/{REAL_CLIP_ID}.wav",)
 HELDOUT_RECORDINGS = ("speech/librivox_0870.wav",)
 VOICES = (
     "en-us",
@@ -230,7 +231,7 @@ def train(out: Path, iterations: int, n_sentences: int, seed: int, batch: int, s
 
 def main(argv=None) -> None:
     limit_threads()
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas train-speech-tokenizer", description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=DEFAULT_CHECKPOINT)
     p.add_argument("--iterations", type=int, default=3000)
     p.add_argument("--sentences", type=int, default=600)

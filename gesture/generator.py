@@ -1,28 +1,25 @@
 """The streaming gesture generator: one 80 ms step of conditioning -> 20 tokens -> 2 frames of SMPL-X parameters.
 
-    gen = GestureGenerator(lm, {"upper": cu, "lower": cl, "face": cf}, cfg_scale=1.3, seed=0)
+    gen = GestureGenerator(lm, {"upper": cu, "lower": cl, "face": cf}, cfg_scale=1.3, seed=0, layers=[...])
     out = gen.step(text_token, audio_codes, agent_pcm)   # GeneratedStep
     gen.reset()                                           # between sessions
 
-Per step (MIBURI-FACTS sections 3 and 5): the temporal transformer gives level 0, the depth transformer levels
-1..19, each sampled with temperature and top-p (the exact rule of `gesture.lm.sampling`), with classifier-free
-guidance on a doubled batch except for the lower-body levels, and the pad logit masked at every level; an optional
-hold bias (not in the reference) raises the logit of the previous step's token at chosen levels. The optional
-idle gate swaps the decoded upper/face tokens while the agent is silent (the LM keeps its own history). Then the
-optional runtime layers, none of them in the reference: the alternation filter (`gesture.alternation_filter`) removes
-the decoded torso's and legs' frame-to-frame alternation, the foot lock (`gesture.foot_lock`) holds planted feet where
-the decoded contacts planted them, the stabilizer (`gesture.stabilizer`) smooths the decoded arms' slow drift so
-that they hold still between strokes, the micro-motion layer (`gesture.micro_motion`) then adds the micro-motion
-the codecs' training data (its gesture layer) leaves out, unsmoothed as in the data, and the face layer
-(`gesture.face_layer`) tops the decoded blinks up to a rate and smooths the brows. Each codec
-stream-decodes 2 frames; 6D becomes axis-angle and the root velocity is integrated into a translation that starts
-at `initial_translation` (0, 1.3, 0): our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin,
-so this puts the feet near the floor.
+Per step: the temporal transformer gives level 0, the depth transformer levels 1..19, each sampled with temperature
+and top-p (the rule of `gesture.lm.sampling`), with classifier-free guidance on a doubled batch except for the
+lower-body levels, and the pad logit masked at every level; an optional hold bias (not in the reference) raises the
+logit of the previous step's token at chosen levels. Then the runtime layers (`gesture.layers`), in their order:
+token layers (the idle gate) on a copy of the tokens, the LM keeping its own history; each codec stream-decodes
+2 frames (6D becomes axis-angle, the root velocity is integrated into a translation that starts at
+`initial_translation`: our skeleton, like SMPL-X, has the pelvis about 0.35 m below the model origin, so (0, 1.3, 0)
+puts the feet near the floor); then the motion layers on the decoded motion.
+
+Like the models inside it (`gesture.nn.streaming`), the generator owns a typed state (`GeneratorState`), allocated
+once and reset in place; nothing in it, nor in its layers, grows with the session.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,20 +27,15 @@ import torch
 
 from ecas.core.body import REGIONS
 from ecas.core.timing import FRAMES_PER_STEP, MOTION_FPS
-from gesture.alternation_filter import AlternationFilter
 from gesture.body.regions import LOWER_CONTACT_SLICE, LOWER_VELOCITY_SLICE, features_to_motion
 from gesture.codec.inference import inference_codec
 from gesture.codec.model import GestureCodec
 from gesture.codec.streaming import StreamingDecoder
-from gesture.face_layer import FaceLayer
-from gesture.foot_lock import FootLock
-from gesture.lm.idle import IdleGate
+from gesture.layers.base import SPEAKING_RMS, Layer, Motion, StepContext, Tokens
 from gesture.lm.model import GestureLM
 from gesture.lm.sampling import guided_row, mask_pad, sample_top_p
 from gesture.lm.stepper import LMStepper
-from gesture.micro_motion import MicroMotion
-from gesture.nn.streaming import StreamingModule
-from gesture.stabilizer import ArmStabilizer
+from gesture.nn.streaming import StreamingModule, StreamingState
 
 
 @dataclass
@@ -53,15 +45,35 @@ class GeneratedStep:
     trans: np.ndarray  # (2, 3) float32
     expressions: np.ndarray  # (2, 100) float32
     va_prob: float  # voice-activity probability, NaN without a VA head
-    idle: bool = False  # True when the idle gate replaced the decoded upper/face tokens
+    idle: bool = False  # True when a token layer (the idle gate) replaced LM tokens with idle ones
+
+
+@dataclass
+class GeneratorState(StreamingState):
+    """The generator's own per-session state (the LM's rings, the codecs' streams and each layer's state are theirs)."""
+
+    history: torch.Tensor  # (K,) long: the previous step's tokens, -1 before the first step
+    carry: np.ndarray  # (3,) float64: the translation of the next frame
+    rng: torch.Generator  # the sampling stream
+    initial_translation: np.ndarray  # (3,) float64
+    seed: int
+    step: int = 0  # steps generated in this session
+
+    def reset(self) -> None:
+        self.history.fill_(-1)
+        self.carry[:] = self.initial_translation
+        self.rng.manual_seed(self.seed)
+        self.step = 0
 
 
 class GestureGenerator:
     """See the module docstring. `dtype` is the weight form of the step path (a key of CODEC_FORMS, see
-    `gesture.nn.weights`): bfloat16 stores the LM's matrices in bfloat16 and decodes with float16 codec copies; int8 stores the LM's matrices as
-    per-row int8 (logits within ~1% of float32, twice bfloat16's error) and decodes with int8 codec copies
-    (`gesture.codec.inference`). `engine` replaces the LM's step path by another with its contract (the benchmark
-    passes the cache-free oracle, `gesture.lm.naive.NaiveStepper`)."""
+    `gesture.nn.weights`): bfloat16 stores the LM's matrices in bfloat16 and decodes with float16 codec copies;
+    int8 stores the LM's matrices as per-row int8 (logits within ~1% of float32, twice bfloat16's error) and decodes
+    with int8 codec copies (`gesture.codec.inference`). `engine` replaces the LM's step path by another with its
+    contract (the benchmark passes the cache-free oracle, `gesture.lm.naive.NaiveStepper`). `layers`: the runtime
+    layers, stepped in order (token layers first); `speaking_rms`: a frame of agent audio above this RMS counts as
+    speech (`StepContext`)."""
 
     def __init__(
         self,
@@ -77,18 +89,14 @@ class GestureGenerator:
         dtype: str = "float32",
         hold_bias: float = 0.0,
         hold_levels: tuple[int, ...] = (),
-        idle_gate: IdleGate | None = None,
-        micro_motion: MicroMotion | None = None,
-        face_layer: FaceLayer | None = None,
-        foot_lock: FootLock | None = None,
-        stabilizer: ArmStabilizer | None = None,
-        alternation_filter: AlternationFilter | None = None,
+        layers: Sequence[Layer] = (),
+        speaking_rms: float = SPEAKING_RMS,
         initial_translation: tuple[float, float, float] = (0.0, 1.3, 0.0),
         engine: StreamingModule | None = None,
     ) -> None:
         self.sizes = lm.sizes
         self.spec = lm.spec
-        self.level_slices = _level_slices(lm)
+        self.level_slices = level_slices(lm)
         _check_codecs(lm, codecs, self.level_slices)
         self.temperature, self.top_p_temporal, self.top_p_depth = temperature, top_p_temporal, top_p_depth
         self.cfg_scale = cfg_scale
@@ -102,35 +110,27 @@ class GestureGenerator:
         self.engine.set_speaker(speaker)
         self.decoders = {name: StreamingDecoder(_inference_codec(codecs[name], dtype)) for name in REGIONS}
         self.unguided = set(self.sizes.lower_levels)
-        self.idle_gate = idle_gate
-        self.micro_motion = micro_motion
-        self.face_layer = face_layer
-        self.foot_lock = foot_lock
-        self.stabilizer = stabilizer
-        self.alternation_filter = alternation_filter
-        self.initial_translation = np.asarray(initial_translation, np.float64)
-        self.seed = seed
-        self.generator = torch.Generator()
+        self.layers = list(layers)
+        self.token_layers, self.motion_layers = _split_layers(self.layers)
+        self.speaking_rms = speaking_rms
+        self.state = GeneratorState(
+            batch_size=1,
+            history=torch.full((self.sizes.n_levels,), -1, dtype=torch.long),
+            carry=np.zeros(3),
+            rng=torch.Generator(),
+            initial_translation=np.asarray(initial_translation, np.float64),
+            seed=seed,
+        )
         self.reset()
 
     def reset(self) -> None:
-        """Start a new session: caches, codec streams, translation carry, idle gate and the random stream."""
+        """Start a new session: the LM's caches, the codec streams, every layer and the generator's own state."""
         self.engine.reset_streaming()
         for decoder in self.decoders.values():
             decoder.reset()
-        for layer in (
-            self.idle_gate,
-            self.alternation_filter,
-            self.foot_lock,
-            self.stabilizer,
-            self.micro_motion,
-            self.face_layer,
-        ):
-            if layer is not None:
-                layer.reset()
-        self.generator.manual_seed(self.seed)
-        self.history = torch.full((self.sizes.n_levels,), -1, dtype=torch.long)
-        self.carry = self.initial_translation.copy()
+        for layer in self.layers:
+            layer.reset()
+        self.state.reset()
 
     def set_speaker(self, speaker: int) -> None:
         self.engine.set_speaker(speaker)
@@ -142,34 +142,26 @@ class GestureGenerator:
 
     @torch.inference_mode()
     def step(self, text_token: int, audio_codes, agent_pcm: np.ndarray | None = None) -> GeneratedStep:
-        """text_token: id or −1; audio_codes (Q,) ints (−1 = none); agent_pcm: this step's agent audio (idle gate,
-        micro-motion)."""
+        """text_token: id or −1; audio_codes (Q,) ints (−1 = none); agent_pcm: this step's agent audio (float in
+        [-1, 1], None: silent), for the layers."""
         audio = self._check_condition(text_token, audio_codes)
         tokens, face_logits = self._sample_tokens(int(text_token), audio)
-        self.history = tokens
+        self.state.history.copy_(tokens)
         va_prob = float("nan")
         if self.engine.has_va:
             va_prob = float(torch.sigmoid(torch.tensor(self.engine.va_logit(face_logits))))
-        decoded = tokens.numpy()
-        idle = False
-        if self.idle_gate is not None:
-            if agent_pcm is not None:
-                self.idle_gate.push_audio(agent_pcm)
-            idle = self.idle_gate.silent
-            decoded = self.idle_gate.apply(decoded)
-        poses, trans, expressions, contacts = self._decode(torch.from_numpy(np.ascontiguousarray(decoded)))
-        if self.alternation_filter is not None:
-            poses, trans = self.alternation_filter.step(poses, trans)
-        if self.foot_lock is not None:
-            poses = self.foot_lock.step(poses, trans, contacts, agent_pcm)
-        if self.stabilizer is not None:
-            poses = self.stabilizer.step(poses)
-        if self.micro_motion is not None:
-            poses = self.micro_motion.step(poses, agent_pcm)
-        if self.face_layer is not None:
-            expressions = self.face_layer.step(expressions)
-        poses = poses.astype(np.float32)
-        return GeneratedStep(tokens.numpy().astype(np.int32), poses, trans, expressions, va_prob, idle)
+        context = StepContext.of(agent_pcm, FRAMES_PER_STEP, self.state.step, self.speaking_rms)
+        decoded = Tokens(tokens.numpy())
+        for layer in self.token_layers:
+            decoded = layer.step(decoded, context)
+        motion = Motion(*self._decode(torch.from_numpy(np.ascontiguousarray(decoded.levels))))
+        for layer in self.motion_layers:
+            motion = layer.step(motion, context)
+        self.state.step += 1
+        poses = motion.poses.astype(np.float32)
+        return GeneratedStep(
+            tokens.numpy().astype(np.int32), poses, motion.trans, motion.expressions, va_prob, decoded.idle
+        )
 
     def _check_condition(self, text_token: int, audio_codes) -> torch.Tensor:
         audio = torch.as_tensor(np.asarray(audio_codes), dtype=torch.long).reshape(-1)
@@ -193,14 +185,14 @@ class GestureGenerator:
     def _sample(self, logits: torch.Tensor, level: int) -> int:
         """(V,) guided logits of `level` (a tensor of our own) -> a token; pad masked, the previous step's token of a
         hold level favoured by `hold_bias`."""
-        if level in self.hold_levels and (previous := int(self.history[level])) >= 0:
+        if level in self.hold_levels and (previous := int(self.state.history[level])) >= 0:
             logits[previous] += self.hold_bias
         top_p = self.top_p_temporal if level == 0 else self.top_p_depth
-        return sample_top_p(mask_pad(logits, self.sizes.pad_token), self.temperature, top_p, self.generator)
+        return sample_top_p(mask_pad(logits, self.sizes.pad_token), self.temperature, top_p, self.state.rng)
 
     def _sample_tokens(self, text: int, audio: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         tokens = [0] * self.sizes.n_levels
-        tokens[0] = self._sample(self.engine.begin_step(self.history, text, audio, self._guidance(0)), 0)
+        tokens[0] = self._sample(self.engine.begin_step(self.state.history, text, audio, self._guidance(0)), 0)
         face_logits = []
         for k in range(self.sizes.n_depth):
             level = k + 1
@@ -220,10 +212,10 @@ class GestureGenerator:
             for name in REGIONS
         }  # name -> (2, nfeats)
         poses, trans, expressions = features_to_motion(
-            features["upper"], features["lower"], features["face"], trans0=self.carry, fps=MOTION_FPS
+            features["upper"], features["lower"], features["face"], trans0=self.state.carry, fps=MOTION_FPS
         )
         last_velocity = features["lower"][FRAMES_PER_STEP - 1, LOWER_VELOCITY_SLICE]
-        self.carry = trans[-1].astype(np.float64) + last_velocity / MOTION_FPS
+        self.state.carry[:] = trans[-1].astype(np.float64) + last_velocity / MOTION_FPS
         return poses, trans, expressions, features["lower"][:, LOWER_CONTACT_SLICE]
 
 
@@ -236,7 +228,19 @@ def _inference_codec(codec: GestureCodec, dtype: str) -> GestureCodec:
     return inference_codec(codec, CODEC_FORMS[dtype])
 
 
-def _level_slices(lm: GestureLM) -> dict[str, slice]:
+def _split_layers(layers: Sequence[Layer]) -> tuple[list[Layer], list[Layer]]:
+    """(token layers, motion layers), each in the given order; token layers must come first."""
+    stages = [getattr(layer, "stage", None) for layer in layers]
+    if any(stage not in ("tokens", "motion") for stage in stages):
+        raise ValueError(f"layers: each needs a stage of 'tokens' or 'motion' (gesture.layers.base), got {stages}")
+    first_motion = stages.index("motion") if "motion" in stages else len(stages)
+    if "tokens" in stages[first_motion:]:
+        raise ValueError(f"layers: token layers act before decoding and must come first, got {stages}")
+    return [x for x, s in zip(layers, stages) if s == "tokens"], [x for x, s in zip(layers, stages) if s == "motion"]
+
+
+def level_slices(lm: GestureLM) -> dict[str, slice]:
+    """The LM's token levels per region."""
     s = lm.sizes
     return {
         "upper": slice(0, s.n_upper),

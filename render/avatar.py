@@ -527,7 +527,7 @@ def main(argv=None) -> int:
 
     from render.body_model import export_smplx_npz
 
-    p = argparse.ArgumentParser(prog="python -m render.avatar", description=main.__doc__)
+    p = argparse.ArgumentParser(prog="ecas avatar", description=main.__doc__)
     p.add_argument("--export", required=True, metavar="SMPLX_NAME.npz", help="output path (name must start SMPLX_)")
     args = p.parse_args(argv)
     model = build_avatar()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 from ecas.core.config import ConfigError
@@ -17,7 +18,7 @@ class RenderConfig:
     both (e.g. 1280x720). Live mode drops a frame when its step is more than `max_lag_ms` old.
     """
 
-    body_model: str | None = None
+    body_model: Path | None = None
     betas: tuple[float, ...] = ()
     platform: Literal["osmesa", "egl"] = "osmesa"
     msaa_samples: int = 0
@@ -30,7 +31,7 @@ class RenderConfig:
     encoding: Literal["jpeg", "rgb24"] = "jpeg"
     jpeg_quality: int = 85
     max_lag_ms: float = 240.0
-    mp4_path: str | None = None
+    mp4_path: Path | None = None
     mp4_audio: Literal["mixed", "stereo"] = "mixed"
     mp4_crf: int = 20
     mp4_preset: str = "veryfast"

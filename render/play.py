@@ -205,7 +205,7 @@ def check_inputs(args: argparse.Namespace) -> int:
 
 def main(argv=None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m render.play", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas play", description=__doc__.splitlines()[0])
     p.add_argument("motion", help="BEAT2/SMPL-X npz with poses (T, 165), trans, expressions, mocap_frame_rate")
     p.add_argument("--wav", help="speech to put in the audio track (any rate, mono or stereo)")
     out = p.add_mutually_exclusive_group(required=True)

@@ -21,7 +21,7 @@ import numpy as np
 
 from ecas.core.component import RunContext, StageFailed
 from ecas.core.messages import DialogueStep, GestureStep, Message, RenderFrame
-from ecas.core.timing import FRAME_SAMPLES, FRAMES_PER_STEP
+from ecas.core.timing import FRAME_SAMPLES, FRAMES_PER_STEP, NS_PER_MS
 from render.config import RenderConfig
 from render.mp4 import BackgroundMp4Writer, Mp4WriteError, Mp4Writer, mix_conversation
 from render.view import AvatarView, load_body
@@ -94,6 +94,7 @@ class RenderComponent:
 
     def __init__(self, cfg: RenderConfig, run: RunContext) -> None:
         self.cfg, self.live = cfg, run.live
+        self.origin_offset_ns = 0  # t_origin_ns + this = capture time on this process's clock
         self.width, self.height = cfg.frame_size(run.live)
         betas = np.asarray(cfg.betas, dtype=np.float64) if cfg.betas else None
         self.view = AvatarView(
@@ -152,7 +153,14 @@ class RenderComponent:
             raise StageFailed(str(err)) from None
 
     def _too_late(self, msg: GestureStep) -> bool:
-        return self.live and msg.t_origin_ns > 0 and (time.monotonic_ns() - msg.t_origin_ns) > self.cfg.max_lag_ms * 1e6
+        if not self.live or msg.t_origin_ns <= 0:
+            return False
+        lag_ns = time.monotonic_ns() - (msg.t_origin_ns + self.origin_offset_ns)
+        return lag_ns > self.cfg.max_lag_ms * NS_PER_MS
+
+    def set_origin_offset_ns(self, offset_ns: int) -> None:
+        """The capturing stage's clock against this one (`ecas.core.component.ClockAware`; measured on START)."""
+        self.origin_offset_ns = offset_ns
 
     def _render_step(self, msg: GestureStep) -> list[RenderFrame]:
         outputs = []

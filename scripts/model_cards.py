@@ -51,7 +51,7 @@ def data_line(mix: Path) -> str:
     held = [take.split("_")[3] for take, split in rows if split == "test"]
     held_out = ", ".join(held) if len(held) <= 3 else f"{held[0]}, {held[1]}, …, {held[-1]}"
     return (
-        f"{n_synthetic} synthetic dyadic sessions × {gen['minutes']:g} min (`python -m gesture.data.synthetic "
+        f"{n_synthetic} synthetic dyadic sessions × {gen['minutes']:g} min (`ecas synthetic "
         f"--seed {gen['seed']}`, default SynthConfig, sessions 1..{n_synthetic}; sessions {held_out} are the "
         "held-out `test` split), plus the real BEAT2 clip `2_scott_0_1_1` (63.5 s, train split). Made by the "
         f"generator with fingerprint `{gen['generator_sha256'][:16]}` "
@@ -78,7 +78,7 @@ def codec_data_lines() -> str:
 
 
 DECODER_STAGE = (
-    "; stage `decoders`: `python -m gesture.train_codec --config ecas/configs/codec/default_small_finetune.yaml "
+    "; stage `decoders`: `ecas train-codec --config ecas/configs/codec/default_small_finetune.yaml "
     f"--region <region> --data $WORK/cache --finetune-decoder $WORK/codecs/<region> --out "
     f"$WORK/decoders/<region> --steps <the region's steps>` for {' and '.join(tuned)}"
     if tuned
@@ -143,8 +143,8 @@ filters, 2/2/1 transformer layers, AdamW lr {CODEC["lr"]:g}, batch {CODEC["batch
 The synthetic sessions are read as their gesture layer (`gesture_poses`): the motion without the small,
 speech-independent micro-motion of the spine, neck, head, collars and wrists, which codecs of this size do not carry
 (a linear probe of an upper latent trained on the whole motion explained none of it). The default agent adds that
-micro-motion after decoding with its micro-motion layer (`gesture.micro_motion`, `ecas/configs/default.yaml`), from the
-same fitted model the generator uses.
+micro-motion after decoding with its micro-motion layer (`gesture.layers.micro_motion`, `ecas/configs/default.yaml`),
+from the same fitted model the generator uses.
 
 ## Metrics
 Reconstruction (offline encode -> decode with all levels) at the last step; MPJPE in mm over the 55 FK joints with
@@ -156,12 +156,12 @@ test sessions:
 {chr(10).join(rows)}
 
 The whole-body codec MPJPE (all three regions reconstructed together) on held-out synthetic sessions is in the
-quality report (`python -m gesture.evaluate --suite default`). Loss curves: `<region>/loss_curve.png`.
+quality report (`ecas evaluate --suite default`). Loss curves: `<region>/loss_curve.png`.
 
 {TERMS}
 
 ## Reproduce
-`bash scripts/train_default.sh` (stage `codecs`: `python -m gesture.train_codec --config
+`bash scripts/train_default.sh` (stage `codecs`: `ecas train-codec --config
 ecas/configs/codec/default_small.yaml --region <region> --data $WORK/cache --out $WORK/codecs/<region>
 --steps <the region's steps>`, the regions of `CODEC_REGIONS` in parallel, `nice -n 5`, one thread each{DECODER_STAGE}).
 
@@ -185,28 +185,30 @@ so `gesture.speaker` is its index.
 
 ## Data
 {lm_data}
-Tokenized by `python -m gesture.data.tokenize` (train split only): gesture tokens from the three shipped codecs'
-encoders (of the synthetic sessions' gesture layer, `gesture_poses`, as the codecs were trained), the agent channel's speech codes, a text token at each agent word's first step (the clip's words from
-the local recogniser), voice activity per step.
+Tokenized by `ecas tokenize` (train split only): gesture tokens from the three shipped codecs'
+encoders (of the synthetic sessions' gesture layer, `gesture_poses`, as the codecs were trained), the agent
+channel's speech codes, a text token at each agent word's first step (the clip's words from the local recogniser),
+voice activity per step.
 
 ## Config
 `ecas/configs/lm/default_small.yaml`: d_model {meta["lm"]["d_model"]}, {meta["lm"]["temporal_layers"]} temporal layers,
 {meta["lm"]["depth_layers"]} depth layer(s), gated FFN {meta["lm"]["ffn_hidden"]}, VA head; AdamW lr
-{LM["lr"]:g}, batch {LM["batch_size"]} windows of {LM["window_steps"]} steps, {last["epoch"]} epochs (config: {LM["epochs"]}) of
-{LM["steps_per_epoch"]} steps, StepLR ×{LM["lr_gamma"]} every {LM["lr_step_epochs"]} epochs, CFG condition dropout,
-pad input dropout, dropout {meta["lm"]["dropout"]:g}, InfoNCE weight {LM["infonce_weight"]:g}, VA loss weight {LM["va_weight"]}.
+{LM["lr"]:g}, batch {LM["batch_size"]} windows of {LM["window_steps"]} steps, {last["epoch"]} epochs (config:
+{LM["epochs"]}) of {LM["steps_per_epoch"]} steps, StepLR ×{LM["lr_gamma"]} every {LM["lr_step_epochs"]} epochs, CFG
+condition dropout, pad input dropout, dropout {meta["lm"]["dropout"]:g}, InfoNCE weight {LM["infonce_weight"]:g}, VA
+loss weight {LM["va_weight"]}.
 
 ## Metrics
 Training losses, epoch 1: {fmt(first)}; epoch {last["epoch"]}: {fmt(last)} (`losses.json`, `loss_curve.png`).
 Generation quality (BeatAlign, L1div, voice-activity accuracy, listening/speaking energy, BEAT2 clip, no-collapse)
-is measured by `python -m gesture.evaluate --suite default --json`, realism against the real clip by
-`python -m gesture.realism --json`; see the README.
+is measured by `ecas evaluate --suite default --json`, realism against the real clip by
+`ecas realism --json`; see the README.
 
 {TERMS}
 
 ## Reproduce
-`bash scripts/train_default.sh` (stages `tokenize`: `python -m gesture.data.tokenize --root $WORK/data
---codecs $WORK/codecs --out $WORK/lm_data`; `lm`: `python -m gesture.train_lm --config
+`bash scripts/train_default.sh` (stages `tokenize`: `ecas tokenize --root $WORK/data
+--codecs $WORK/codecs --out $WORK/lm_data`; `lm`: `ecas train-lm --config
 ecas/configs/lm/default_small.yaml --data $WORK/lm_data --codecs $WORK/codecs --out $WORK/lm`;
 `ship` converts the weights to bfloat16).
 

@@ -10,7 +10,7 @@
 #   SESSIONS=2 CODEC_SESSIONS=2 MINUTES=0.5 CODEC_STEPS=20 DECODER_REGIONS=upper DECODER_STEPS=10 LM_EPOCHS=1 WORK=/tmp/tiny SHIP=/tmp/tiny/ship bash scripts/train_default.sh
 #
 # Every stage's wall time goes to $WORK/wall_times.tsv. Re-running reuses the synthetic data when it exists
-# (SYNTHETIC=data/synthetic reuses the dataset of `python -m gesture.data.synthetic --out data/synthetic`).
+# (SYNTHETIC=data/synthetic reuses the dataset of `ecas synthetic --out data/synthetic`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -110,7 +110,7 @@ train_codecs() {  # the regions of $CODEC_REGIONS in parallel, each niced and si
     fi
     steps=${region_steps[$region]}
     rm -f "$WORK/codec_origin_$region"  # trained here
-    timed "codec_$region" "${NICE[@]}" "$PY" -m gesture.train_codec --config "$CODEC_CONFIG" --region "$region" \
+    timed "codec_$region" "${NICE[@]}" "$PY" -m ecas.cli train-codec --config "$CODEC_CONFIG" --region "$region" \
       --data "$WORK/cache" --out "$WORK/codecs/$region" --steps "$steps" > "$WORK/codec_$region.json" \
       2> "$WORK/codec_$region.log" &
     pids+=($!)
@@ -123,7 +123,7 @@ finetune_decoders() {  # each region of $DECODER_REGIONS in parallel -> $WORK/de
   local -A region_steps=([upper]=$UPPER_DECODER_STEPS [lower]=$LOWER_DECODER_STEPS)
   for region in $DECODER_REGIONS; do
     local steps=${region_steps[$region]:-$DECODER_STEPS}  # the face: DECODER_STEPS, else the config's
-    "${NICE[@]}" "$PY" -m gesture.train_codec --config "$DECODER_CONFIG" --region "$region" --data "$WORK/cache" \
+    "${NICE[@]}" "$PY" -m ecas.cli train-codec --config "$DECODER_CONFIG" --region "$region" --data "$WORK/cache" \
       --finetune-decoder "$WORK/codecs/$region" --out "$WORK/decoders/$region" \
       ${steps:+--steps "$steps"} > "$WORK/decoder_$region.json" 2> "$WORK/decoder_$region.log" &
     pids+=($!)
@@ -159,7 +159,7 @@ EOF
 }
 
 if [ ! -f "$SYNTHETIC/train_test_split.csv" ]; then
-  timed synthetic "$PY" -m gesture.data.synthetic --out "$SYNTHETIC" --sessions "$SESSIONS" --minutes "$MINUTES" \
+  timed synthetic "$PY" -m ecas.cli synthetic --out "$SYNTHETIC" --sessions "$SESSIONS" --minutes "$MINUTES" \
     --seed "$SEED" --jobs 2
 fi
 mix_data "$WORK/codec_data" "$CODEC_SESSIONS"
@@ -170,8 +170,8 @@ rm -rf "$WORK/decoders" "$WORK/lm_data" "$WORK/lm"
 # The decoder fine-tuning keeps the encoders and quantizers, so the LM's tokens do not wait for it: both run at once.
 timed decoders finetune_decoders &
 decoders_pid=$!
-timed tokenize "$PY" -m gesture.data.tokenize --root "$WORK/data" --codecs "$WORK/codecs" --out "$WORK/lm_data"
-timed lm "${NICE[@]}" "$PY" -m gesture.train_lm --config "$LM_CONFIG" --data "$WORK/lm_data" \
+timed tokenize "$PY" -m ecas.cli tokenize --root "$WORK/data" --codecs "$WORK/codecs" --out "$WORK/lm_data"
+timed lm "${NICE[@]}" "$PY" -m ecas.cli train-lm --config "$LM_CONFIG" --data "$WORK/lm_data" \
   --codecs "$WORK/codecs" --out "$WORK/lm" --no-progress ${LM_EPOCHS:+--epochs "$LM_EPOCHS"}
 wait "$decoders_pid"
 timed ship ship

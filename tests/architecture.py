@@ -12,28 +12,18 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-COMMANDS = (
-    "gesture.evaluate",
-    "gesture.suite",
-    "gesture.realism",
-    "gesture.train_codec",
-    "gesture.train_lm",
-    "gesture.convert_miburi",
-    "gesture.data.synthetic",
-    "gesture.data.tokenize",
-)  # kept command names
-
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("ecas.core",),  # timing, body constants, spec, messages, bus, config loader, component contract
     ("gesture.nn", "gesture.body"),  # network blocks and step weights; body maths
-    ("dialogue", "gesture.data"),  # the dialogue system; reading and chunking motion data
+    ("dialogue", "gesture.data", "gesture.layers"),  # the dialogue system; reading motion data; the runtime layers
     ("render", "gesture.synth", "gesture.codec"),  # the avatar; synthetic conversations; the motion codecs
     ("gesture.lm",),  # the gesture LM, its tokenized data and its fast step
     ("gesture",),  # the gesture runtime: generator, stage component, `gesture:` section
     ("gesture.release",),  # the MIBURI release converter
     ("gesture.eval",),  # metrics, evaluation, quality suite, realism report
     ("agent",),  # the application: sections, supervisor, stage runner, io, dashboard
-    ("launch", "bench", "scripts", "ecas", *COMMANDS),  # entry points
+    ("bench", "scripts", "ecas"),  # entry points: the `ecas` command (ecas.cli, ecas.launch), benches, scripts
+    ("launch",),  # launch.py in a checkout: the design's name for `ecas`
 )
 ROOTS = frozenset(c.split(".")[0] for layer in LAYERS for c in layer)
 

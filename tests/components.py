@@ -18,6 +18,16 @@ from ecas.core.component import RunContext
 from ecas.core.messages import AudioUser, DialogueStep, GestureStep, Message, MsgpackSerializer, RenderFrame
 from ecas.core.timing import FRAMES_PER_STEP
 
+# `launch.py` options that put these components in place of the real dialogue, gesture and render stages
+TEST_STAGES = [
+    "--set",
+    "run.components.dialogue=tests.components:echo_dialogue",
+    "--set",
+    "run.components.gesture=tests.components:wave_gesture",
+    "--set",
+    "run.components.render=tests.components:recorder",
+]
+
 KILL_AT_STEP = "TEST_KILL_AT_STEP"  # the stage's process SIGKILLs itself at this step
 CORRUPT_AT_STEP = "TEST_CORRUPT_AT_STEP"  # the dialogue stage sends one truncated frame at this step
 RENDER_SLEEP_S = "TEST_RENDER_SLEEP_S"  # the recorder sleeps this long per frame
@@ -105,6 +115,10 @@ class Recorder(_Passive):
             RenderFrame(frame_index=i, width=4, height=4, image=np.full((4, 4, 3), msg.step % 256, np.uint8))
             for i in range(FRAMES_PER_STEP)
         ]
+
+    def set_origin_offset_ns(self, offset_ns: int) -> None:
+        """Recorded as a `clock` row: what the stage runner measured on START (ecas.core.component.ClockAware)."""
+        self.log.write(json.dumps({"topic": "clock", "origin_offset_ns": offset_ns}) + "\n")
 
     def close(self) -> None:
         self.log.close()

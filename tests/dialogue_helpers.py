@@ -11,12 +11,12 @@ from dialogue.process import create_component
 from ecas.core.component import RunContext
 from ecas.core.config import build_dataclass
 from ecas.core.messages import AudioUser
-from ecas.core.paths import data_root
+from ecas.core.paths import data_root, real_clip
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 SHARED_DATA = data_root()
 LIBRIVOX = SHARED_DATA / "speech" / "librivox_0870.wav"
-BEAT2_WAV = SHARED_DATA / "beat2" / "2_scott_0_1_1.wav"
+BEAT2_WAV = real_clip().with_suffix(".wav")
 
 
 def load_24k(path: Path) -> np.ndarray:

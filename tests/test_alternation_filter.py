@@ -1,17 +1,17 @@
-"""The alternation filter (gesture.alternation_filter): it removes an alternation at half the frame rate, passes
-slow motion, streams as one call, and is wired into the generator and the `gesture.alternation_filter` section."""
+"""The alternation filter (gesture.layers.alternation_filter): it removes an alternation at half the frame rate,
+passes slow motion, streams as one call, and is wired into the generator and the `alternation_filter` item of
+`gesture.layers`."""
 
 import numpy as np
 import pytest
 
 from ecas.core.config import ConfigError
 from ecas.core.timing import MOTION_FPS
-from gesture.alternation_filter import AlternationFilter
-from gesture.config import TORSO_AND_LEG_JOINTS, AlternationFilterConfig
 from gesture.eval.realism import angular_speeds
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.process import build_alternation_filter
+from gesture.layers import build_layer
+from gesture.layers.alternation_filter import TORSO_AND_LEG_JOINTS, AlternationFilter
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 JOINTS = TORSO_AND_LEG_JOINTS
 
@@ -30,7 +30,7 @@ def _motion(frames: int, seed: int, alternation: float = 1.0) -> tuple[np.ndarra
 def test_the_alternation_goes_and_slow_motion_stays():
     poses, trans = _motion(200, 0)
     slow, slow_trans = _motion(200, 0, alternation=0.0)
-    out, out_trans = AlternationFilter(JOINTS).step(poses, trans)
+    out, out_trans = AlternationFilter(JOINTS).apply(poses, trans)
     speeds = {
         name: angular_speeds(p, MOTION_FPS)[1:, list(JOINTS)]
         for name, p in (("in", poses), ("out", out), ("slow", slow))
@@ -41,7 +41,7 @@ def test_the_alternation_goes_and_slow_motion_stays():
     others = [j for j in range(55) if j not in JOINTS]
     np.testing.assert_array_equal(out[:, others], poses[:, others])
     held = np.repeat(poses[:1], 10, axis=0)
-    out_held, out_trans_held = AlternationFilter(JOINTS).step(held, np.repeat(trans[:1], 10, axis=0))
+    out_held, out_trans_held = AlternationFilter(JOINTS).apply(held, np.repeat(trans[:1], 10, axis=0))
     np.testing.assert_allclose(out_held, held, atol=1e-6)
     np.testing.assert_allclose(out_trans_held, np.repeat(trans[:1], 10, axis=0), atol=1e-6)
 
@@ -49,23 +49,23 @@ def test_the_alternation_goes_and_slow_motion_stays():
 def test_two_frame_steps_equal_one_call_and_appending_never_changes_the_past():
     poses, trans = _motion(60, 1)
     layer = AlternationFilter(JOINTS)
-    whole = layer.step(poses, trans)
+    whole = layer.apply(poses, trans)
     layer.reset()
-    steps = [layer.step(poses[i : i + 2], trans[i : i + 2]) for i in range(0, 60, 2)]
+    steps = [layer.apply(poses[i : i + 2], trans[i : i + 2]) for i in range(0, 60, 2)]
     np.testing.assert_allclose(np.concatenate([p for p, _ in steps]), whole[0], atol=1e-6)
     np.testing.assert_allclose(np.concatenate([t for _, t in steps]), whole[1], atol=1e-6)
-    short = AlternationFilter(JOINTS).step(poses[:21], trans[:21])
+    short = AlternationFilter(JOINTS).apply(poses[:21], trans[:21])
     np.testing.assert_array_equal(whole[0][:21], short[0])
 
 
 def test_generator_applies_it_to_the_decoded_motion():
     conditions = [(5, np.arange(8) % 12)] * 5
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
-    filtered = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1, alternation_filter=AlternationFilter(JOINTS))
+    filtered = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1, layers=[AlternationFilter(JOINTS)])
     outputs = [(plain.step(text, audio), filtered.step(text, audio)) for text, audio in conditions]
     for a, b in outputs:
         np.testing.assert_array_equal(a.tokens, b.tokens)
-    expected = AlternationFilter(JOINTS).step(
+    expected = AlternationFilter(JOINTS).apply(
         np.concatenate([a.poses for a, _ in outputs]), np.concatenate([a.trans for a, _ in outputs])
     )
     np.testing.assert_allclose(np.concatenate([b.poses for _, b in outputs]), expected[0], atol=1e-5)
@@ -73,12 +73,13 @@ def test_generator_applies_it_to_the_decoded_motion():
 
 
 def test_bad_options_and_inputs_give_clear_errors():
-    with pytest.raises(ConfigError, match="gesture.alternation_filter.joints: must name at least one joint"):
-        AlternationFilterConfig(joints=())
+    with pytest.raises(
+        ConfigError, match=r"gesture.layers\[0\].alternation_filter.joints: must name at least one joint"
+    ):
+        build_layer("alternation_filter", {"joints": []})
     with pytest.raises(ConfigError, match=r"alternation_filter: joints: need one or more of 0..54, got \[3, 55\]"):
-        build_alternation_filter(AlternationFilterConfig(enabled=True, joints=(3, 55)))
-    assert build_alternation_filter(AlternationFilterConfig()) is None
+        build_layer("alternation_filter", {"joints": [3, 55]})
     with pytest.raises(ValueError, match=r"poses: expected \(frames, 55, 3\)"):
-        AlternationFilter(JOINTS).step(np.zeros((2, 24, 3)), np.zeros((2, 3)))
+        AlternationFilter(JOINTS).apply(np.zeros((2, 24, 3)), np.zeros((2, 3)))
     with pytest.raises(ValueError, match=r"trans: expected \(2, 3\)"):
-        AlternationFilter(JOINTS).step(np.zeros((2, 55, 3)), np.zeros((3, 3)))
+        AlternationFilter(JOINTS).apply(np.zeros((2, 55, 3)), np.zeros((3, 3)))

@@ -72,3 +72,17 @@ def test_the_core_imports_no_stage():
     stages = {"agent", "dialogue", "gesture", "render"}
     graph = import_graph(REPO)
     assert not {t.split(".")[0] for m, ts in graph.items() if m.startswith("ecas.core.") for t in ts} & stages
+
+
+def test_every_ecas_command_is_a_module_with_a_main():
+    """`ecas COMMAND` runs a module's `main`: every module the command table names exists, defines `main`, runs it
+    under `python -m`, and names itself `ecas COMMAND` in its usage line."""
+    from ecas.cli import COMMANDS
+
+    for name, (module, _) in COMMANDS.items():
+        path = REPO / (module.replace(".", "/") + ".py")
+        source = path.read_text()
+        assert "\ndef main(" in source, f"{module}: no main()"
+        assert '__name__ == "__main__"' in source, f"{module}: `python -m {module}` would not run main()"
+        if module != "ecas.launch":
+            assert f'prog="ecas {name}"' in source, f"{module}: its --help should name `ecas {name}`"

@@ -7,7 +7,8 @@ import pytest
 import zmq
 
 from agent.clock import ClockSync
-from agent.latency import LatencyRecorder, format_table
+from agent.dashboard.events import LatencyMeter
+from agent.latency import LatencyRecorder, format_table, origin_offset_ns
 from ecas.core.bus import BusConfig, Publisher, Subscriber, stage_address
 from ecas.core.messages import AudioUser, Command, Control, Metrics
 
@@ -135,3 +136,23 @@ def test_latency_splits_per_stage_and_uses_the_second_frame():
     assert summary["stages"]["dialogue"]["compute"]["p50"] == 10.0
     assert summary["stages"]["gesture"]["wait"]["p50"] == 1.0
     assert "end to end" in format_table(summary)
+
+
+def test_the_report_and_the_dashboard_measure_a_step_alike():
+    pipeline = ("io", "dialogue", "gesture", "render")
+    ms = 1_000_000
+    stamps = {"io": 2 * ms, "dialogue.in": 3 * ms, "dialogue": 9 * ms, "gesture": 20 * ms, "render": 41 * ms}
+    msg = Metrics(step=3, t_origin_ns=ms, stamps=stamps, values={"frame_index": 1.0})
+    offsets = {"gesture": 2 * ms, "render": -3 * ms}  # two stages on hosts whose clocks differ
+    rec = LatencyRecorder(pipeline)
+    rec.add(msg, offsets)
+    (event,) = LatencyMeter(pipeline, history_steps=4).on_metrics(msg, offsets)
+    assert event["e2e_ms"] == rec.e2e_ms[0] == 43.0
+    assert event["stages"] == {stage: rec.segments_ms[stage]["total"][0] for stage in pipeline}
+    assert event["stages"]["gesture"] == 9.0 and event["stages"]["render"] == 26.0
+
+
+def test_a_capture_time_moves_to_another_stage_clock_by_both_offsets():
+    offsets = {"io": 5_000, "render": -2_000}  # each stage's clock minus the supervisor's
+    assert origin_offset_ns("render", "io", offsets) == -7_000
+    assert origin_offset_ns("render", "io", {}) == 0

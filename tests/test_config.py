@@ -1,10 +1,14 @@
+import pickle
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import pytest
+import yaml
 
 from agent.sections import AppConfig, load_app_config
-from ecas.core.config import ConfigError, build_dataclass
+from ecas.core.config import ConfigError, apply_override, build_dataclass, config_path, load_yaml, parse_override
+from ecas.core.paths import CHECKPOINTS_DIR, CONFIGS_DIR, DEFAULT_CONFIG, EXAMPLES_DIR, data_root
 
 
 @dataclass(frozen=True)
@@ -84,3 +88,72 @@ def test_every_yaml_reader_names_a_missing_file(tmp_path):
     (tmp_path / "config.yaml").write_text("region: [unclosed\n")
     with pytest.raises(ConfigError, match="config.yaml: not valid YAML"):
         read_checkpoint_config(tmp_path)
+
+
+@dataclass(frozen=True)
+class Files:
+    model: Path | None = None
+    label: str = ""
+
+
+def test_a_relative_path_in_a_config_file_is_relative_to_the_file(tmp_path, monkeypatch):
+    config = tmp_path / "configs" / "mine.yaml"
+    config.parent.mkdir()
+    config.write_text("files:\n  model: ../weights/model.bin\n  label: ../not/a/path\n")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    files = build_dataclass(Files, load_yaml(config)["files"], "files")
+    assert files.model == tmp_path / "weights" / "model.bin"
+    assert files.label == "../not/a/path" and type(files.label) is str  # only a Path option is resolved
+
+
+def test_a_path_from_the_command_line_is_relative_to_the_working_directory(tmp_path, monkeypatch):
+    config = tmp_path / "configs" / "mine.yaml"
+    config.parent.mkdir()
+    config.write_text("files:\n  model: weights.bin\n")
+    tree = load_yaml(config)
+    apply_override(tree, *parse_override("files.model=other/weights.bin"))
+    assert build_dataclass(Files, tree["files"], "files").model == Path("other/weights.bin")
+
+
+def test_variables_in_a_path(tmp_path, monkeypatch):
+    config = tmp_path / "mine.yaml"
+    config.write_text("files:\n  model: $PWD/models/a.bin\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("PWD", "/somewhere/else")  # a child started with another cwd inherits its parent's PWD
+    assert build_dataclass(Files, load_yaml(config)["files"]).model == tmp_path / "models" / "a.bin"
+    monkeypatch.setenv("ECAS_DATA", str(tmp_path / "data"))
+    assert build_dataclass(Files, {"model": "${ECAS_DATA}/beat2"}).model == tmp_path / "data" / "beat2"
+    monkeypatch.delenv("ECAS_DATA")
+    assert build_dataclass(Files, {"model": "$ECAS_DATA/beat2"}).model == data_root() / "beat2"
+
+
+def test_the_packaged_default_config_finds_its_files_from_any_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    app = load_app_config(config_path("default"), ["render.mp4_path=out/demo.mp4"])
+    assert app.io.replay_path == EXAMPLES_DIR / "librivox_0870.wav" and app.io.replay_path.is_file()
+    assert app.gesture.lm_checkpoint == CHECKPOINTS_DIR / "gesture_lm" and app.gesture.lm_checkpoint.is_dir()
+    assert app.gesture.codec_checkpoints == CHECKPOINTS_DIR / "codecs"
+    assert app.render.mp4_path == Path("out/demo.mp4")
+    assert pickle.loads(pickle.dumps(app)) == app  # the stages receive it pickled
+
+
+def test_config_names_a_packaged_config_or_a_file(tmp_path):
+    assert config_path("default") == DEFAULT_CONFIG
+    assert config_path("miburi-release") == CONFIGS_DIR / "miburi-release.yaml"
+    assert config_path("lm/small") == CONFIGS_DIR / "lm" / "small.yaml"
+    mine = tmp_path / "mine.yaml"
+    assert config_path(str(mine)) == mine  # a file name, even before it exists: load_yaml then says it is missing
+    with pytest.raises(
+        ConfigError, match=r"--config nonsense: no such file, nor a packaged config \(packaged: .*default"
+    ):
+        config_path("nonsense")
+
+
+def test_a_loaded_tree_still_dumps_and_pickles():
+    tree = load_yaml(DEFAULT_CONFIG)
+    assert yaml.safe_load(yaml.safe_dump(tree)) == tree
+    text = tree["io"]["replay_path"]
+    copy = pickle.loads(pickle.dumps(text))
+    assert copy == text and copy.base_dir == text.base_dir == CONFIGS_DIR

@@ -22,6 +22,7 @@ from ecas.core.messages import AudioUser, GestureStep
 from gesture.process import create_component as create_gesture
 from gesture.release.convert import convert_release
 from gesture.release.synthetic import ReferenceSizes, write_experiment
+from tests.test_convert_miburi import TINY
 from tests.test_moshi_backend import TINY_CARD, TINY_LM, TINY_TEXT_CARD, tiny_moshi_files  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,32 +37,26 @@ def test_release_config_is_the_moshi_backend_with_the_converted_release():
     assert Path(app.dialogue.moshi.mimi_weights).name == "tokenizer-e351c8d8-checkpoint125.safetensors"
     assert Path(app.dialogue.moshi.tokenizer).name == "tokenizer_spm_32k_3.model"
     g = app.gesture
-    assert (g.lm_checkpoint, g.codec_checkpoints, g.idle.slices_dir) == (
-        Path("checkpoints/miburi-release/lm"),
-        Path("checkpoints/miburi-release/codecs"),
-        Path("checkpoints/miburi-release/idle"),
+    release = Path.cwd() / "checkpoints" / "miburi-release"  # $PWD in the config: the working directory
+    assert [spec.name for spec in g.layers] == ["idle"]
+    assert (g.lm_checkpoint, g.codec_checkpoints, g.layers[0].options.slices_dir) == (
+        release / "lm",
+        release / "codecs",
+        release / "idle",
     )
-    assert g.idle.enabled and g.cfg_scale == 1.3 and g.speaker == 3
+    assert g.cfg_scale == 1.3 and g.speaker == 3
     text = CONFIG.read_text()
-    assert "CC BY-NC 4.0" in text and "python -m gesture.convert_miburi" in text
+    assert "CC BY-NC 4.0" in text and "ecas convert-miburi" in text
 
 
 @pytest.fixture(scope="module")
 def tiny_release(tmp_path_factory):
     """A release whose conditioning vocabulary is the tiny Moshi's (text_card + 1, card + 1, dim)."""
-    sizes = ReferenceSizes(
-        latent=16,
-        n_filters=8,
-        codec_ffn=32,
-        codec_layers=2,
-        codec_heads=2,
-        card=16,
-        code_dim=4,
-        d=32,
+    sizes = dataclasses.replace(  # the converter tests' tiny release, with the reference's levels, one layer each
+        TINY,
+        n_q=ReferenceSizes().n_q,
         temporal_layers=1,
         depth_layers=1,
-        ffn_hidden=48,
-        n_speakers=9,
         text_vocab=TINY_TEXT_CARD + 1,
         audio_card=TINY_CARD + 1,
         embed_dim=TINY_LM["dim"],
@@ -83,7 +78,7 @@ def _overrides(moshi_dir: Path, out: Path) -> list[str]:
         "dialogue.moshi.device": "cpu",
         "gesture.lm_checkpoint": out / "lm",
         "gesture.codec_checkpoints": out / "codecs",
-        "gesture.idle.slices_dir": out / "idle",
+        "gesture.layers": f"[{{idle: {{slices_dir: {out / 'idle'}}}}}]",
         "gesture.warmup_steps": 1,
     }
     return [f"{key}={value}" for key, value in values.items()]

@@ -578,7 +578,8 @@ async def _watch_page(url: str, proc: subprocess.Popen) -> tuple[dict, dict, str
         assert await page.evaluate("document.getElementById('start').disabled") is False
         await page.evaluate("document.getElementById('start').click()")
         await page.wait_for(
-            "window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2 && window.dashboard.words >= 4",
+            "window.dashboard.frames >= 4 && window.dashboard.latencySamples >= 2 && window.dashboard.words >= 4"
+            " && window.dashboard.chartLastStep >= 0",
             timeout_s=30,
         )
         state = await page.evaluate(PAGE_STATE)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from render.testing import check_av_sync, decode, needs_osmesa, silhouette, silhouette_center
+from tests.render_helpers import check_av_sync, decode, needs_osmesa, silhouette, silhouette_center
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -75,7 +75,8 @@ def test_speech_codes_for_both_sides(librivox_run):
 def test_barge_in_cuts_the_agent_and_the_user_is_answered(tmp_path):
     """The user speaks again 2.3 s after finishing, over the agent's answer; the agent stops and answers."""
     speech = load_24k(LIBRIVOX)
-    overlap_start = (len(speech) + int(2.3 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
+    # The user comes in 1.5 s after their turn ended: inside the agent's reply (which starts 0.3-0.7 s after it).
+    overlap_start = (len(speech) + int(1.5 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
     pcm = np.concatenate(
         [
             speech,
@@ -140,7 +141,8 @@ def test_echo_of_the_agents_own_voice_does_not_barge_in(tmp_path):
 @pytest.mark.slow
 def test_the_user_can_still_barge_in_over_a_quieter_echo(tmp_path):
     speech = load_24k(LIBRIVOX)
-    overlap_start = (len(speech) + int(2.3 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
+    # The user comes in 1.5 s after their turn ended: inside the agent's reply (which starts 0.3-0.7 s after it).
+    overlap_start = (len(speech) + int(1.5 * SAMPLE_RATE_HZ)) // STEP_SAMPLES * STEP_SAMPLES
     user = np.concatenate(
         [
             speech,

@@ -1,4 +1,4 @@
-"""The face layer (gesture.face_layer): blinks topped up to a total rate as the realism report counts them, brow
+"""The face layer (gesture.layers.face): blinks topped up to a total rate as the realism report counts them, brow
 twitches smoothed away while held raises stay, streaming, and its wiring into the generator and config."""
 
 import numpy as np
@@ -7,15 +7,14 @@ import torch
 
 from ecas.core.config import ConfigError
 from ecas.core.timing import MOTION_FPS
-from gesture.config import FaceLayerConfig
 from gesture.eval.realism import FACE_BASELINE_S, FACE_EVENTS, face_activations, face_stats
-from gesture.face_layer import BASELINE_S, BLINK_HEIGHT, BLINK_MIN_GAP_S, FaceLayer
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.process import build_face_layer
+from gesture.layers import build_layer
+from gesture.layers.face import BASELINE_S, BLINK_HEIGHT, BLINK_MIN_GAP_S, FaceLayer, FaceOptions
 from gesture.synth.face import BLINK_ROW, BLINKS_PER_MINUTE, BROW_ROW, expressions_from_activations
 from gesture.synth.tracks import add_bump
 from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 MINUTES = 10
@@ -24,7 +23,7 @@ FRAMES = int(MINUTES * 60 * MOTION_FPS)
 
 def _stepped(layer: FaceLayer, expressions: np.ndarray) -> np.ndarray:
     """The layer run as the generator runs it: 2 frames a step."""
-    return np.concatenate([layer.step(expressions[i : i + 2]) for i in range(0, len(expressions), 2)])
+    return np.concatenate([layer.apply(expressions[i : i + 2]) for i in range(0, len(expressions), 2)])
 
 
 def _own_blinks(per_minute: float) -> np.ndarray:
@@ -83,12 +82,12 @@ def test_streaming_is_causal_and_reset_replays():
     rng = np.random.default_rng(0)
     face = (_own_blinks(8)[:1000] + 0.3 * rng.standard_normal((1000, 100))).astype(np.float32)
     layer = FaceLayer(MOTION_FPS, seed=2, blinks_per_minute=BLINKS_PER_MINUTE, brow_cutoff_hz=0.5)
-    whole = layer.step(face)
+    whole = layer.apply(face)
     layer.reset()
     np.testing.assert_array_equal(_stepped(layer, face), whole)
     layer.reset()
-    np.testing.assert_array_equal(layer.step(face[:500]), whole[:500])  # appending input never changes the past
-    other = FaceLayer(MOTION_FPS, seed=3, blinks_per_minute=BLINKS_PER_MINUTE, brow_cutoff_hz=0.5).step(face)
+    np.testing.assert_array_equal(layer.apply(face[:500]), whole[:500])  # appending input never changes the past
+    other = FaceLayer(MOTION_FPS, seed=3, blinks_per_minute=BLINKS_PER_MINUTE, brow_cutoff_hz=0.5).apply(face)
     assert not np.array_equal(whole, other)
 
 
@@ -99,7 +98,7 @@ def test_generator_applies_the_layer_to_the_face_only():
         tiny_lm(),
         tiny_codecs(),
         seed=1,
-        face_layer=FaceLayer(MOTION_FPS, seed=1, blinks_per_minute=60, brow_cutoff_hz=0.5),
+        layers=[FaceLayer(MOTION_FPS, seed=1, blinks_per_minute=60, brow_cutoff_hz=0.5)],
     )
     a = [plain.step(text, audio) for text, audio in conditions]
     b = [layered.step(text, audio) for text, audio in conditions]
@@ -110,10 +109,9 @@ def test_generator_applies_the_layer_to_the_face_only():
 
 
 def test_config_errors_name_the_option():
-    with pytest.raises(ConfigError, match=r"gesture.face.blinks_per_minute: must be in \[0, 75\)"):
-        FaceLayerConfig(blinks_per_minute=80.0)
-    with pytest.raises(ConfigError, match="gesture.face.brow_cutoff_hz: must be >= 0"):
-        FaceLayerConfig(brow_cutoff_hz=-1.0)
-    assert build_face_layer(FaceLayerConfig(), seed=0) is None
-    assert FaceLayerConfig().blinks_per_minute == BLINKS_PER_MINUTE  # the code's default is the data's rate
-    assert isinstance(build_face_layer(FaceLayerConfig(enabled=True), seed=0), FaceLayer)
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].face.blinks_per_minute: must be in \[0, 75\)"):
+        build_layer("face", {"blinks_per_minute": 80.0})
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].face.brow_cutoff_hz: must be >= 0"):
+        build_layer("face", {"brow_cutoff_hz": -1.0})
+    assert FaceOptions().blinks_per_minute == BLINKS_PER_MINUTE  # the code's default is the data's rate
+    assert isinstance(build_layer("face"), FaceLayer)

@@ -1,4 +1,4 @@
-"""`python -m gesture.train_codec --finetune-decoder DIR`: only the decoder half learns, so the codes stay fixed."""
+"""`ecas train-codec --finetune-decoder DIR`: only the decoder half learns, so the codes stay fixed."""
 
 import pytest
 import torch

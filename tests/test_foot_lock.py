@@ -1,6 +1,6 @@
-"""Foot locking (gesture.foot_lock): planted ankles hold still in the world, unplanted legs pass untouched, a lock
-lets go of a step (sooner while the agent speaks), streaming and causality, and its wiring into the generator and
-config."""
+"""Foot locking (gesture.layers.foot_lock): planted ankles hold still in the world, unplanted legs pass untouched, a
+lock lets go of a step (sooner while the agent speaks), streaming and causality, and its wiring into the generator
+and config."""
 
 import numpy as np
 import pytest
@@ -9,11 +9,10 @@ import torch
 from ecas.core.config import ConfigError
 from ecas.core.timing import MOTION_FPS, STEP_SAMPLES
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
-from gesture.config import FootLockConfig
-from gesture.foot_lock import LEGS, FootLock
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.process import build_foot_lock
+from gesture.layers import StepContext, build_layer
+from gesture.layers.foot_lock import LEGS, FootLock
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 SKELETON = Skeleton.default()
@@ -39,7 +38,10 @@ def _sliding_stance(frames: int, hip_swing_rad: float = 0.0) -> tuple[np.ndarray
 
 def _stepped(lock: FootLock, poses, trans, contacts, agent_pcm=None) -> np.ndarray:
     return np.concatenate(
-        [lock.step(poses[i : i + 2], trans[i : i + 2], contacts[i : i + 2], agent_pcm) for i in range(0, len(poses), 2)]
+        [
+            lock.apply(poses[i : i + 2], trans[i : i + 2], contacts[i : i + 2], StepContext.of(agent_pcm, 2).speaking)
+            for i in range(0, len(poses), 2)
+        ]
     )
 
 
@@ -110,24 +112,24 @@ def test_streaming_is_causal_and_reset_replays():
     poses, trans = _sliding_stance(60, hip_swing_rad=0.6)
     contacts = (np.random.default_rng(0).random((60, 4)) > 0.2).astype(np.float32)
     lock = FootLock(SKELETON, MOTION_FPS)
-    whole = lock.step(poses, trans, contacts)
+    whole = lock.apply(poses, trans, contacts)
     lock.reset()
     np.testing.assert_array_equal(_stepped(lock, poses, trans, contacts), whole)
     lock.reset()
-    np.testing.assert_array_equal(lock.step(poses[:30], trans[:30], contacts[:30]), whole[:30])
+    np.testing.assert_array_equal(lock.apply(poses[:30], trans[:30], contacts[:30]), whole[:30])
 
 
 def test_generator_hands_the_decoded_contacts_to_the_lock():
     calls = []
 
     class Recording(FootLock):
-        def step(self, poses, trans, contacts, agent_pcm=None):
-            calls.append((np.asarray(contacts).shape, agent_pcm is SPEECH))
-            return super().step(poses, trans, contacts, agent_pcm)
+        def step(self, motion, context):
+            calls.append((np.asarray(motion.contacts).shape, context.agent_pcm is SPEECH))
+            return super().step(motion, context)
 
     conditions = [(5, np.arange(8) % 12)] * 6
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
-    locked = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1, foot_lock=Recording(SKELETON, MOTION_FPS))
+    locked = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1, layers=[Recording(SKELETON, MOTION_FPS)])
     others = [j for j in range(55) if j not in LEG_JOINTS]
     for text, audio in conditions:
         a, b = plain.step(text, audio, SPEECH), locked.step(text, audio, SPEECH)
@@ -139,14 +141,13 @@ def test_generator_hands_the_decoded_contacts_to_the_lock():
 
 def test_bad_inputs_and_options_give_clear_errors():
     with pytest.raises(ValueError, match=r"contacts \(F, 4\)"):
-        FootLock(SKELETON, MOTION_FPS).step(np.zeros((2, 55, 3)), np.zeros((2, 3)), np.zeros((2, 2)))
-    with pytest.raises(ConfigError, match="gesture.foot_lock.release_m: must be > 0"):
-        FootLockConfig(release_m=0.0)
-    with pytest.raises(ConfigError, match="gesture.foot_lock.release_speaking_m: must be > 0"):
-        FootLockConfig(release_speaking_m=-0.1)
-    with pytest.raises(ConfigError, match="gesture.foot_lock.blend_s: must be > 0"):
-        FootLockConfig(blend_s=-1.0)
-    with pytest.raises(ConfigError, match="gesture.foot_lock.step_s: must be > 0"):
-        FootLockConfig(step_s=0.0)
-    assert build_foot_lock(FootLockConfig()) is None
-    assert isinstance(build_foot_lock(FootLockConfig(enabled=True)), FootLock)
+        FootLock(SKELETON, MOTION_FPS).apply(np.zeros((2, 55, 3)), np.zeros((2, 3)), np.zeros((2, 2)))
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].foot_lock.release_m: must be > 0"):
+        build_layer("foot_lock", {"release_m": 0.0})
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].foot_lock.release_speaking_m: must be > 0"):
+        build_layer("foot_lock", {"release_speaking_m": -0.1})
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].foot_lock.blend_s: must be > 0"):
+        build_layer("foot_lock", {"blend_s": -1.0})
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].foot_lock.step_s: must be > 0"):
+        build_layer("foot_lock", {"step_s": 0.0})
+    assert isinstance(build_layer("foot_lock"), FootLock)

@@ -7,9 +7,9 @@ import torch
 from gesture.body.regions import LOWER_VELOCITY_SLICE
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.lm.idle import IdleGate
+from gesture.layers.idle_gate import IdleGate
 from tests.kernels import KERNELS, using
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 
@@ -129,7 +129,7 @@ def test_idle_gate_swaps_upper_and_face_tokens_while_silent():
 def test_generator_with_idle_gate_keeps_its_own_history():
     gate = IdleGate(np.zeros((8, 4), int), np.zeros((4, 4), int), slice(0, 8), slice(16, 20))
     conditions = _conditions(6)
-    gated = _generator(idle_gate=gate)
+    gated = _generator(layers=[gate])
     plain = _run(_generator(), conditions)
     silence = np.zeros(1920, np.float32)
     for (text, audio), ref in zip(conditions, plain):
@@ -222,7 +222,7 @@ def _geodesic_rad(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def test_idle_slices_load_from_the_reference_layout(tmp_path):
-    from gesture.lm.idle import load_idle_slices
+    from gesture.layers.idle_gate import load_idle_slices
 
     np.savez(tmp_path / "idle_upper_tokens_slices.npz", **{"0": np.arange(8 * 6).reshape(1, 8, 6) % 16})
     with pytest.raises(FileNotFoundError, match="idle_face_tokens_slices.npz"):

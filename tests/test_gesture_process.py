@@ -17,8 +17,8 @@ from gesture.config import GestureConfig
 from gesture.data.beat2 import read_motion
 from gesture.eval.metrics import load_motion_clip
 from gesture.lm.checkpoint import save_lm
-from gesture.lm.fixtures import TINY_SPEC, tiny_codec_config, tiny_codecs, tiny_lm
 from gesture.process import create_component
+from tests.lm_fixtures import TINY_SPEC, tiny_codec_config, tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 
@@ -109,7 +109,5 @@ def test_gesture_config_validates_options():
         GestureConfig(hold_bias=-1.0)
     with pytest.raises(ConfigError, match="gesture.hold_levels"):
         GestureConfig(hold_levels=(-1,))
-    with pytest.raises(ConfigError, match="gesture.idle.slices_dir"):
-        from gesture.config import IdleGateConfig
-
-        IdleGateConfig(enabled=True)
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].idle.slices_dir: required"):
+        GestureConfig(layers=[{"idle": {}}])

@@ -3,7 +3,8 @@ float32 generator's sampled tokens and motion, and every step path's logits and 
 (float32 to 1e-6; the reduced weight forms within the tolerances of tests/test_lm_stepper.py and
 tests/test_codec_inference.py), on both kernels of each form.
 
-After replacing ecas/checkpoints/, regenerate the file: `python -m tests.golden.checkpoints` (tests/golden/checkpoints.py).
+After replacing ecas/checkpoints/, regenerate the file: `python -m tests.golden.checkpoints`
+(tests/golden/checkpoints.py).
 """
 
 import numpy as np

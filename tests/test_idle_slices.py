@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from gesture.layers.idle_gate import load_idle_slices
 from gesture.lm.data import write_recording
-from gesture.lm.idle import load_idle_slices
 from gesture.lm.idle_slices import longest_silent_run, main
 
 

@@ -9,9 +9,9 @@ from ecas.core.config import ConfigError
 from ecas.core.spec import MOSHI_SPEC, ConditionSpec, SpecMismatchError
 from gesture.lm.checkpoint import load_lm, save_lm
 from gesture.lm.config import LMConfig
-from gesture.lm.fixtures import TINY_SPEC, tiny_lm
 from gesture.lm.model import GestureLM, shift_history
 from gesture.lm.stepper import LMStepper
+from tests.lm_fixtures import TINY_SPEC, tiny_lm
 
 torch.set_num_threads(1)
 KEYS_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "state_dict_keys"

@@ -3,10 +3,10 @@
 import pytest
 import torch
 
-from gesture.lm.fixtures import tiny_lm
 from gesture.lm.naive import NaiveStepper
 from gesture.lm.stepper import LMStepper
 from tests.kernels import KERNELS, using
+from tests.lm_fixtures import tiny_lm
 
 torch.set_num_threads(1)
 STEPS = 200

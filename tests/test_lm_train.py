@@ -9,10 +9,10 @@ import torch
 from ecas.core.config import ConfigError
 from gesture.lm.config import LMFileConfig, LMTrainConfig
 from gesture.lm.data import LMDataset, write_recording, write_spec
-from gesture.lm.fixtures import TINY_SPEC, tiny_lm_config
 from gesture.lm.losses import level_weights, segment_info_nce, token_ce
 from gesture.lm.schedule import condition_drop_probability, drop_conditions, gumbel_tau, pad_input_rate, pad_inputs
 from gesture.lm.train import main, train
+from tests.lm_fixtures import TINY_SPEC, tiny_lm_config
 
 torch.set_num_threads(1)
 REFERENCE = LMTrainConfig()

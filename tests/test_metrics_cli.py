@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 def _evaluate(*args) -> subprocess.CompletedProcess:
     """The command itself, in a fresh interpreter."""
     return subprocess.run(
-        [sys.executable, "-m", "gesture.evaluate", *map(str, args)], cwd=REPO, capture_output=True, text=True
+        [sys.executable, "-m", "gesture.eval.evaluate", *map(str, args)], cwd=REPO, capture_output=True, text=True
     )
 
 

@@ -43,7 +43,7 @@ def test_cli_gives_the_reference_l1div_mpjpe_and_frames(expected):
         [
             sys.executable,
             "-m",
-            "gesture.evaluate",
+            "gesture.eval.evaluate",
             "--motion",
             str(GT_NPZ),
             "--gt",

@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 EVALUATE = [
     sys.executable,
     "-m",
-    "gesture.evaluate",
+    "gesture.eval.evaluate",
     "--motion",
     str(CLIP_NPZ),
     "--gt",

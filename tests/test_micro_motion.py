@@ -1,5 +1,5 @@
-"""The micro-motion layer (gesture.micro_motion): its noise statistics, causality, listening calm, and its wiring
-into the generator and the `gesture.micro_motion` config section."""
+"""The micro-motion layer (gesture.layers.micro_motion): its noise statistics, causality, listening calm, and its
+wiring into the generator and the `micro_motion` item of `gesture.layers`."""
 
 import numpy as np
 import pytest
@@ -10,24 +10,24 @@ from ecas.core.body import COLLARS
 from ecas.core.config import ConfigError
 from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, geodesic_angle, matrix_to_axis_angle_np
-from gesture.config import MicroMotionConfig
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.micro_motion import (
+from gesture.layers import LayerEnv, StepContext, build_layer
+from gesture.layers.base import SPEAKING_RMS, frame_rms
+from gesture.layers.micro_motion import (
     HEAD_DRIFT_JOINTS,
-    SPEAKING_RMS,
     CausalSmoothNoise,
     HeadDrift,
     LowpassNoise,
+    MicroMotionOptions,
     VoiceEnvelope,
     calibrated_micro_motion,
-    frame_rms,
 )
-from gesture.process import build_micro_motion
+from gesture.layers.signal import lowpass_sos
 from gesture.synth import agent
 from gesture.synth.agent import MICRO_ENVELOPE_GAIN, micro_motion
 from gesture.synth.calibration import load_calibration
-from gesture.synth.tracks import lowpass_noise, lowpass_sos, smooth_noise
+from gesture.synth.tracks import lowpass_noise, smooth_noise
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)
@@ -40,10 +40,20 @@ def _rest_poses(frames: int) -> np.ndarray:
     return poses
 
 
+def _apply(layer, poses: np.ndarray, pcm: np.ndarray | None) -> np.ndarray:
+    """The layer on `poses` (F frames) with the agent audio `pcm` spread over them."""
+    context = StepContext.of(pcm, len(poses))
+    return layer.apply(poses, context.frame_rms, context.speaking)
+
+
+def _build_micro_motion(options: MicroMotionOptions, seed: int):
+    return build_layer("micro_motion", options, LayerEnv(seed=seed))
+
+
 def _moved(layer, poses: np.ndarray, speaking: bool = True) -> np.ndarray:
     """The layer run step by step (2 frames each) on speech or silence."""
     pcm = STEP_PCM if speaking else np.zeros_like(STEP_PCM)
-    return np.concatenate([layer.step(poses[i : i + 2], pcm) for i in range(0, len(poses), 2)])
+    return np.concatenate([_apply(layer, poses[i : i + 2], pcm) for i in range(0, len(poses), 2)])
 
 
 def test_causal_noise_has_unit_variance_and_the_synthetic_noises_speed():
@@ -86,9 +96,9 @@ def test_streaming_in_steps_equals_one_call_and_reset_replays(joints):
     poses = _rest_poses(40)
     layer = calibrated_micro_motion(joints, MOTION_FPS, seed=3)
     pcm = np.concatenate([STEP_PCM * (k % 3) for k in range(20)])  # speech and silence
-    whole = layer.step(poses, pcm)
+    whole = _apply(layer, poses, pcm)
     layer.reset()
-    steps = np.concatenate([layer.step(poses[i : i + 2], pcm[960 * i : 960 * (i + 2)]) for i in range(0, 40, 2)])
+    steps = np.concatenate([_apply(layer, poses[i : i + 2], pcm[960 * i : 960 * (i + 2)]) for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
     other = _moved(calibrated_micro_motion(joints, MOTION_FPS, seed=4), poses)
     assert not np.array_equal(whole, other)
@@ -136,7 +146,7 @@ def test_generator_applies_the_layer_after_decoding():
     pcm = np.full(1920, 0.05, np.float32)
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
     layered = GestureGenerator(
-        tiny_lm(), tiny_codecs(), seed=1, micro_motion=calibrated_micro_motion(JOINTS, MOTION_FPS, seed=1)
+        tiny_lm(), tiny_codecs(), seed=1, layers=[calibrated_micro_motion(JOINTS, MOTION_FPS, seed=1)]
     )
     for text, audio in conditions:
         a, b = plain.step(text, audio, pcm), layered.step(text, audio, pcm)
@@ -148,13 +158,14 @@ def test_generator_applies_the_layer_after_decoding():
 
 
 def test_config_errors_name_the_option():
-    with pytest.raises(ConfigError, match="gesture.micro_motion.scale: must be >= 0"):
-        MicroMotionConfig(scale=-1.0)
-    with pytest.raises(ConfigError, match="gesture.micro_motion.joints: must name at least one joint"):
-        MicroMotionConfig(joints=())
-    with pytest.raises(ConfigError, match=r"gesture.micro_motion.joints: joints \[30\]: no fitted micro-motion"):
-        build_micro_motion(MicroMotionConfig(enabled=True, joints=(3, 30)), seed=0)
-    assert build_micro_motion(MicroMotionConfig(), seed=0) is None
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].micro_motion.scale: must be >= 0"):
+        build_layer("micro_motion", {"scale": -1.0})
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].micro_motion.joints: must name at least one joint"):
+        build_layer("micro_motion", {"joints": []})
+    with pytest.raises(
+        ConfigError, match=r"gesture.layers\[0\].micro_motion.joints: joints \[30\]: no fitted micro-motion"
+    ):
+        build_layer("micro_motion", {"joints": [3, 30]})
 
 
 def test_wrists_hold_still_as_often_as_the_datas(monkeypatch):
@@ -163,7 +174,9 @@ def test_wrists_hold_still_as_often_as_the_datas(monkeypatch):
     frames, wrists = 20_000, (20, 21)
     layer = calibrated_micro_motion(wrists, MOTION_FPS, seed=0)
     rms = float(np.sqrt(np.mean(STEP_PCM**2)))
-    runtime = np.stack([layer.offsets(rms) for _ in range(frames)])[MOTION_FPS * 10 :]  # (T, 2, 3) after the warm-up
+    runtime = np.stack([layer.offsets(rms, True) for _ in range(frames)])[
+        MOTION_FPS * 10 :
+    ]  # (T, 2, 3) after the warm-up
     fitted = load_calibration().micro_motion
     level = np.full(frames, 1 + MICRO_ENVELOPE_GAIN * 0.5)  # speaking, at the loud level
 
@@ -190,9 +203,9 @@ def test_head_drift_streams_in_steps_as_in_one_call_and_reset_replays():
     poses = _rest_poses(40)
     pcm = np.concatenate([STEP_PCM * (k % 3) for k in range(20)])
     layer = _drifting()
-    whole = layer.step(poses, pcm)
+    whole = _apply(layer, poses, pcm)
     layer.reset()
-    steps = np.concatenate([layer.step(poses[i : i + 2], pcm[960 * i : 960 * (i + 2)]) for i in range(0, 40, 2)])
+    steps = np.concatenate([_apply(layer, poses[i : i + 2], pcm[960 * i : 960 * (i + 2)]) for i in range(0, 40, 2)])
     np.testing.assert_array_equal(whole, steps)
 
 
@@ -219,13 +232,13 @@ def test_head_drift_has_its_size_and_is_slow():
 
 
 def test_the_config_builds_the_head_drift_and_names_its_options():
-    assert build_micro_motion(MicroMotionConfig(enabled=True), 0).head_drift is None
-    layer = build_micro_motion(MicroMotionConfig(enabled=True, head_drift_rad=0.025, head_drift_hz=0.17), 0)
+    assert _build_micro_motion(MicroMotionOptions(), 0).head_drift is None
+    layer = _build_micro_motion(MicroMotionOptions(head_drift_rad=0.025, head_drift_hz=0.17), 0)
     assert layer.head_drift.std_rad == 0.025 and set(HEAD_DRIFT_JOINTS) <= set(layer.changed)
-    with pytest.raises(ConfigError, match="gesture.micro_motion.head_drift_rad: must be >= 0"):
-        MicroMotionConfig(head_drift_rad=-0.1)
-    with pytest.raises(ConfigError, match=r"gesture.micro_motion.head_drift_hz: must be in \(0, 12.5\)"):
-        MicroMotionConfig(head_drift_hz=13.0)
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].micro_motion.head_drift_rad: must be >= 0"):
+        build_layer("micro_motion", {"head_drift_rad": -0.1})
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].micro_motion.head_drift_hz: must be in \(0, 12.5\)"):
+        build_layer("micro_motion", {"head_drift_hz": 13.0})
 
 
 def test_slower_collars_change_only_the_collars_and_keep_their_spread():
@@ -241,11 +254,11 @@ def test_slower_collars_change_only_the_collars_and_keep_their_spread():
 
 
 def test_the_config_sets_the_collars_cutoff_and_names_the_option():
-    layer = build_micro_motion(MicroMotionConfig(enabled=True, collar_cutoff_hz=1.5), 0)
-    fitted = build_micro_motion(MicroMotionConfig(enabled=True), 0)
+    layer = _build_micro_motion(MicroMotionOptions(collar_cutoff_hz=1.5), 0)
+    fitted = _build_micro_motion(MicroMotionOptions(), 0)
     slow = 3 * len(layer.joints)  # the slow noise's channels, 3 per joint, come first
     changed = np.flatnonzero(np.any(layer.noise.b[:slow] != fitted.noise.b[:slow], axis=1)) // 3
     assert [layer.joints[k] for k in np.unique(changed)] == list(COLLARS)
     np.testing.assert_array_equal(layer.noise.b[slow:], fitted.noise.b[slow:])  # their quick noise stays
-    with pytest.raises(ConfigError, match=r"gesture.micro_motion.collar_cutoff_hz: must be 0 \(as fitted\)"):
-        MicroMotionConfig(collar_cutoff_hz=-1.0)
+    with pytest.raises(ConfigError, match=r"gesture.layers\[0\].micro_motion.collar_cutoff_hz: must be 0 \(as fitted"):
+        build_layer("micro_motion", {"collar_cutoff_hz": -1.0})

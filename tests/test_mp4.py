@@ -10,12 +10,10 @@ from ecas.core.messages import DialogueStep, GestureStep
 from ecas.core.timing import FRAME_SAMPLES, SAMPLE_RATE_HZ, STEP_SAMPLES
 from render.config import RenderConfig
 from render.mp4 import BackgroundMp4Writer, Mp4Error, Mp4Writer
-from render.testing import (
-    BEAT2_NPZ,
-    BEAT2_WAV,
+from tests.data.beat2_clip import CLIP_NPZ, CLIP_WAV, needs_clip
+from tests.render_helpers import (
     check_av_sync,
     decode,
-    needs_beat2,
     needs_osmesa,
     silhouette,
     silhouette_center,
@@ -87,7 +85,7 @@ def test_writer_rejects_bad_input(tmp_path):
 
 
 @needs_osmesa
-@needs_beat2
+@needs_clip
 def test_render_play_on_the_beat2_clip(tmp_path):
     from render.play import main
 
@@ -95,9 +93,9 @@ def test_render_play_on_the_beat2_clip(tmp_path):
     assert (
         main(
             [
-                str(BEAT2_NPZ),
+                str(CLIP_NPZ),
                 "--wav",
-                str(BEAT2_WAV),
+                str(CLIP_WAV),
                 "--mp4",
                 str(out),
                 "--size",
@@ -191,6 +189,28 @@ def test_render_component_live_drops_late_frames_and_keeps_sync(tmp_path):
         component.close()
     assert component.counters()["dropped_frames"] == 4
     check_av_sync(decode(out), 8)  # dropped frames repeat the last one: the audio keeps its place
+
+
+@needs_osmesa
+def test_render_component_reads_capture_times_on_its_own_clock(tmp_path):
+    """The capturing stage on another host: its clock 10 s behind this one. With the measured offset no frame is
+    late; without it every frame would look 10 s late and be dropped."""
+    import time
+
+    from render.process import create_component
+
+    cfg = RenderConfig(live_size=64, encoding="rgb24", max_lag_ms=2000)
+    behind_ns = 10 * 10**9
+    for offset_ns, expected_frames in ((behind_ns, 2), (0, 0)):
+        component = create_component(cfg, RunContext(run_dir=tmp_path, live=True, seed=0, session="t"))
+        component.set_origin_offset_ns(offset_ns)
+        try:
+            dialogue, gesture = next(_steps(1))
+            gesture.t_origin_ns = time.monotonic_ns() - behind_ns
+            component.handle(dialogue)
+            assert len(component.handle(gesture)) == expected_frames
+        finally:
+            component.close()
 
 
 class _RecordingWriter:

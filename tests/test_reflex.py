@@ -1,10 +1,11 @@
-"""Posture reflexes (gesture.synth.reflex): the chest and head counter quick turns beneath them, causally."""
+"""Posture reflexes (gesture.layers.reflex): the chest and head counter quick turns beneath them, causally."""
 
 import numpy as np
 
+from ecas.core.body import NECK_HEAD, SPINE
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.eval.realism import WORLD_PARTS, world_rotations
-from gesture.synth.reflex import CHEST, HEAD, PostureReflexes, Reflex, chain_world
+from gesture.layers.reflex import CHEST, HEAD, PostureReflexes, Reflex, chain_world
 
 FPS = 25.0
 
@@ -16,7 +17,7 @@ def swaying_body(n: int, pelvis_hz: float, seed: int = 0) -> np.ndarray:
     poses = np.zeros((n, 55, 3))
     t = np.arange(n) / FPS
     poses[:, 0, 1] = 0.15 * np.sin(2 * np.pi * pelvis_hz * t)
-    poses[:, [3, 6, 9, 12, 15]] = 0.05 * rng.standard_normal((1, 5, 3))
+    poses[:, [*SPINE, *NECK_HEAD]] = 0.05 * rng.standard_normal((1, 5, 3))
     return poses
 
 

@@ -16,17 +16,11 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from tests.components import TEST_STAGES
+
 ROOT = Path(__file__).resolve().parents[1]
 TMP = Path("/tmp")
 EXIT_USAGE = 2
-TEST_STAGES = [
-    "--set",
-    "run.components.dialogue=tests.components:echo_dialogue",
-    "--set",
-    "run.components.gesture=tests.components:wave_gesture",
-    "--set",
-    "run.components.render=tests.components:recorder",
-]
 
 
 @pytest.fixture
@@ -254,22 +248,22 @@ def test_render_play_rejects_bad_input_in_one_line(play_cases, play_results, cas
 
 # ---- the training and data CLIs -----------------------------------------------------------------------------------
 CLI_CASES = {
-    "train_codec config dir": (["gesture.train_codec", "--config", "{d}", "--region", "upper"], "is a directory"),
+    "train_codec config dir": (["gesture.codec.train", "--config", "{d}", "--region", "upper"], "is a directory"),
     "train_codec steps 0": (
-        ["gesture.train_codec", "--config", "ecas/configs/codec/small.yaml", "--region", "upper", "--steps", "0"],
+        ["gesture.codec.train", "--config", "ecas/configs/codec/small.yaml", "--region", "upper", "--steps", "0"],
         "--steps: must be >= 1",
     ),
     "train_lm config dir": (
-        ["gesture.train_lm", "--config", "{d}", "--data", "{d}", "--out", "{d}/out"],
+        ["gesture.lm.train", "--config", "{d}", "--data", "{d}", "--out", "{d}/out"],
         "is a directory",
     ),
     "train_lm no recordings": (
-        ["gesture.train_lm", "--config", "ecas/configs/lm/small.yaml", "--data", "{d}", "--out", "{d}/out"],
+        ["gesture.lm.train", "--config", "ecas/configs/lm/small.yaml", "--data", "{d}", "--out", "{d}/out"],
         "not a directory of npz recordings",
     ),
     "train_lm epochs 0": (
         [
-            "gesture.train_lm",
+            "gesture.lm.train",
             "--config",
             "ecas/configs/lm/small.yaml",
             "--data",
@@ -283,7 +277,7 @@ CLI_CASES = {
     ),
     "build missing root": (["gesture.data.build", "--root", "{d}/nope", "--out", "{d}/cache"], "nope"),
     "tokenize missing codecs": (
-        ["gesture.data.tokenize", "--root", "{d}", "--codecs", "{d}/nope", "--out", "{d}/tok"],
+        ["gesture.lm.tokenize", "--root", "{d}", "--codecs", "{d}/nope", "--out", "{d}/tok"],
         "nope",
     ),
 }

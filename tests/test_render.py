@@ -11,8 +11,9 @@ import torch
 from render.avatar import build_avatar
 from render.lbs import Skinner
 from render.renderer import CameraRig, MeshRenderer
-from render.testing import needs_osmesa, silhouette, silhouette_center
 from render.view import AvatarView
+from tests.data.beat2_clip import needs_clip
+from tests.render_helpers import needs_osmesa, silhouette, silhouette_center
 
 torch.set_num_threads(1)
 pytestmark = needs_osmesa
@@ -86,10 +87,11 @@ def test_camera_rejects_unknown_preset():
 FRAMES_HASH_SCRIPT = """
 import hashlib
 import numpy as np
+from ecas.core.paths import real_clip
 from gesture.data.beat2 import read_motion
 from render.avatar import build_avatar
 from render.view import AvatarView
-motion = read_motion("../shared/data/beat2/2_scott_0_1_1.npz")
+motion = read_motion(real_clip().with_suffix(".npz"))
 view = AvatarView(build_avatar(), 256, 256)
 digest = hashlib.sha1()
 for i in range(0, 300, 30):
@@ -98,6 +100,7 @@ print(digest.hexdigest())
 """
 
 
+@needs_clip
 def test_the_same_poses_render_the_same_pixels_in_every_process():
     """Object addresses differ between processes; the image must not (pyrender's light order followed them)."""
     procs = [

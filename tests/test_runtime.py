@@ -17,16 +17,9 @@ import soundfile as sf
 
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from tests import components
+from tests.components import TEST_STAGES
 
 ROOT = Path(__file__).resolve().parents[1]
-TEST_STAGES = [
-    "--set",
-    "run.components.dialogue=tests.components:echo_dialogue",
-    "--set",
-    "run.components.gesture=tests.components:wave_gesture",
-    "--set",
-    "run.components.render=tests.components:recorder",
-]
 TAIL_S = 0.32  # 4 steps of silence after the recording
 
 
@@ -107,6 +100,8 @@ def test_every_step_arrives_once_in_order(talk, tmp_path, mode):
     assert code == 0, output
     for topic in ("dialogue.step", "gesture.step"):
         assert [r["step"] for r in received(tmp_path / "run", topic)] == list(range(n_steps))
+    # the sink heard the io stage's clock offset once, on START: one host, one clock
+    assert [r["origin_offset_ns"] for r in received(tmp_path / "run", "clock")] == [0]
     latency = json.loads((tmp_path / "run" / "latency.json").read_text())
     assert latency["steps_measured"] == n_steps
     assert all(c.get("dropped", 0) == 0 and c.get("lost", 0) == 0 for c in latency["counters"].values())

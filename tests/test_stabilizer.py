@@ -1,5 +1,5 @@
-"""The arm stabilizer (gesture.stabilizer): streaming equals one call, causality, holds come to rest while strokes
-pass, and its wiring into the generator and the `gesture.stabilizer` config section."""
+"""The arm stabilizer (gesture.layers.stabilizer): streaming equals one call, causality, holds come to rest while
+strokes pass, and its wiring into the generator and the `stabilizer` item of `gesture.layers`."""
 
 import numpy as np
 import pytest
@@ -8,19 +8,18 @@ import torch
 from ecas.core.config import ConfigError
 from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
-from gesture.config import StabilizerConfig
 from gesture.eval.realism import STILL_RAD_S, angular_speeds
 from gesture.generator import GestureGenerator
-from gesture.lm.fixtures import tiny_codecs, tiny_lm
-from gesture.process import build_stabilizer
-from gesture.stabilizer import ArmStabilizer
+from gesture.layers import build_layer
+from gesture.layers.stabilizer import ArmStabilizer
+from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)
 ARMS = (18, 19, 20, 21)
 
 
 def _stabilizer(**options) -> ArmStabilizer:
-    return build_stabilizer(StabilizerConfig(enabled=True, **options))
+    return build_layer("stabilizer", options)
 
 
 def _wandering_arms(frames: int, seed: int = 0) -> np.ndarray:
@@ -32,38 +31,38 @@ def _wandering_arms(frames: int, seed: int = 0) -> np.ndarray:
 def test_streaming_in_steps_equals_one_call_and_reset_replays():
     poses = _wandering_arms(60)
     stabilizer = _stabilizer()
-    whole = stabilizer.step(poses)
+    whole = stabilizer.apply(poses)
     stabilizer.reset()
-    steps = np.concatenate([stabilizer.step(poses[i : i + 2]) for i in range(0, len(poses), 2)])
+    steps = np.concatenate([stabilizer.apply(poses[i : i + 2]) for i in range(0, len(poses), 2)])
     np.testing.assert_allclose(steps, whole, atol=1e-6)
 
 
 def test_appending_frames_never_changes_earlier_output():
     poses = _wandering_arms(80)
-    short = _stabilizer().step(poses[:50])
-    np.testing.assert_array_equal(_stabilizer().step(poses)[:50], short)
+    short = _stabilizer().apply(poses[:50])
+    np.testing.assert_array_equal(_stabilizer().apply(poses)[:50], short)
 
 
 def test_only_the_chosen_joints_change_and_a_held_pose_passes_unchanged():
     poses = _wandering_arms(40)
-    out = _stabilizer().step(poses)
+    out = _stabilizer().apply(poses)
     others = [j for j in range(55) if j not in ARMS]
     np.testing.assert_array_equal(out[:, others], poses[:, others])
     assert not np.allclose(out[:, list(ARMS)], poses[:, list(ARMS)], atol=1e-3)
     held = np.repeat(poses[:1], 30, axis=0)
-    np.testing.assert_allclose(_stabilizer().step(held), held, atol=1e-6)
+    np.testing.assert_allclose(_stabilizer().apply(held), held, atol=1e-6)
 
 
 def test_slow_drift_comes_to_rest_and_a_fast_stroke_arrives():
     frames = 250
     drift = _wandering_arms(frames, seed=1)  # about 0.4 rad/s per joint
     before = angular_speeds(drift, MOTION_FPS)[:, list(ARMS)]
-    after = angular_speeds(_stabilizer().step(drift), MOTION_FPS)[:, list(ARMS)]
+    after = angular_speeds(_stabilizer().apply(drift), MOTION_FPS)[:, list(ARMS)]
     assert (after < STILL_RAD_S).mean() > 2 * (before < STILL_RAD_S).mean()
 
     stroke = np.zeros((frames, 55, 3), np.float32)  # the elbow bends 0.8 rad in 0.2 s, then holds
     stroke[:, 18, 2] = np.clip((np.arange(frames) - 20) / 5, 0, 1) * 0.8
-    out = _stabilizer().step(stroke)
+    out = _stabilizer().apply(stroke)
     peak = angular_speeds(out, MOTION_FPS)[:, 18].max()
     assert peak > 0.5 * angular_speeds(stroke, MOTION_FPS)[:, 18].max()
     assert abs(out[25 + int(0.5 * MOTION_FPS), 18, 2] - 0.8) < 0.05  # within 0.05 rad half a second after the stroke
@@ -72,8 +71,8 @@ def test_slow_drift_comes_to_rest_and_a_fast_stroke_arrives():
 def test_a_drift_becomes_holds_within_hold_rad_of_the_input():
     drift = _wandering_arms(250)
     holding = _stabilizer(hold_rad=(0.08, 0.08, 0.0, 0.0))
-    out = holding.step(drift)
-    smooth = _stabilizer(hold_rad=(0.0,) * 4).step(drift)
+    out = holding.apply(drift)
+    smooth = _stabilizer(hold_rad=(0.0,) * 4).apply(drift)
     assert (angular_speeds(smooth, MOTION_FPS)[:, 18:20] == 0).mean() == 0.0  # a low-pass alone never stops
     held = angular_speeds(out, MOTION_FPS)[:, 18:20] == 0  # (T-1, 2) frames whose output did not move
     assert held.mean() > 0.1
@@ -91,31 +90,31 @@ def test_a_drift_becomes_holds_within_hold_rad_of_the_input():
 def test_generator_applies_it_last():
     conditions = [(5, np.arange(8) % 12)] * 6
     plain = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1)
-    stable = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1, stabilizer=_stabilizer())
+    stable = GestureGenerator(tiny_lm(), tiny_codecs(), seed=1, layers=[_stabilizer()])
     outputs = [(plain.step(text, audio), stable.step(text, audio)) for text, audio in conditions]
     for a, b in outputs:
         np.testing.assert_array_equal(a.tokens, b.tokens)
         others = [j for j in range(55) if j not in ARMS]
         np.testing.assert_allclose(b.poses[:, others], a.poses[:, others], atol=1e-6)
-    expected = _stabilizer().step(np.concatenate([a.poses for a, _ in outputs]))
+    expected = _stabilizer().apply(np.concatenate([a.poses for a, _ in outputs]))
     np.testing.assert_allclose(np.concatenate([b.poses for _, b in outputs]), expected, atol=1e-5)
 
 
 def test_bad_options_give_errors_that_name_them():
-    with pytest.raises(ConfigError, match=r"gesture.stabilizer.min_cutoff_hz: need one value > 0 per joint .* \(4\)"):
-        StabilizerConfig(min_cutoff_hz=(1.0, 0.0, 1.0, 1.0))
-    with pytest.raises(ConfigError, match="gesture.stabilizer.min_cutoff_hz: need one value > 0 per joint"):
-        StabilizerConfig(min_cutoff_hz=(1.0,))
-    with pytest.raises(ConfigError, match="gesture.stabilizer.speed_gain_hz: must be >= 0"):
-        StabilizerConfig(speed_gain_hz=-1.0)
-    with pytest.raises(ConfigError, match=r"gesture.stabilizer.hold_rad: need one value >= 0 per joint .* \(4\)"):
-        StabilizerConfig(hold_rad=(0.1, -0.1, 0.0, 0.0))
-    with pytest.raises(ConfigError, match=r"gesture.stabilizer.settle_share: must be in \(0, 1\)"):
-        StabilizerConfig(settle_share=1.0)
-    with pytest.raises(ConfigError, match="gesture.stabilizer.joints: must name at least one joint"):
-        StabilizerConfig(joints=())
-    with pytest.raises(ConfigError, match=r"gesture.stabilizer: joints: need one or more of 0..54, got \[18, 60\]"):
-        build_stabilizer(StabilizerConfig(enabled=True, joints=(18, 60), min_cutoff_hz=(1.0, 1.0), hold_rad=(0.0, 0.0)))
-    assert build_stabilizer(StabilizerConfig()) is None
+    at = r"gesture.layers\[0\].stabilizer"
+    with pytest.raises(ConfigError, match=at + r".min_cutoff_hz: need one value > 0 per joint .* \(4\)"):
+        _stabilizer(min_cutoff_hz=(1.0, 0.0, 1.0, 1.0))
+    with pytest.raises(ConfigError, match=at + ".min_cutoff_hz: need one value > 0 per joint"):
+        _stabilizer(min_cutoff_hz=(1.0,))
+    with pytest.raises(ConfigError, match=at + ".speed_gain_hz: must be >= 0"):
+        _stabilizer(speed_gain_hz=-1.0)
+    with pytest.raises(ConfigError, match=at + r".hold_rad: need one value >= 0 per joint .* \(4\)"):
+        _stabilizer(hold_rad=(0.1, -0.1, 0.0, 0.0))
+    with pytest.raises(ConfigError, match=at + r".settle_share: must be in \(0, 1\)"):
+        _stabilizer(settle_share=1.0)
+    with pytest.raises(ConfigError, match=at + ".joints: must name at least one joint"):
+        _stabilizer(joints=())
+    with pytest.raises(ConfigError, match=at + r": joints: need one or more of 0..54, got \[18, 60\]"):
+        _stabilizer(joints=(18, 60), min_cutoff_hz=(1.0, 1.0), hold_rad=(0.0, 0.0))
     with pytest.raises(ValueError, match=r"poses: expected \(frames, 55, 3\)"):
-        _stabilizer().step(np.zeros((2, 24, 3)))
+        _stabilizer().apply(np.zeros((2, 24, 3)))

@@ -129,7 +129,7 @@ def test_suite_cli_short_run(tmp_path):
         [
             sys.executable,
             "-m",
-            "gesture.evaluate",
+            "gesture.eval.evaluate",
             "--suite",
             "default",
             "--json",

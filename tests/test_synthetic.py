@@ -7,22 +7,36 @@ import pytest
 import soundfile as sf
 import torch
 
+from ecas.core.body import (
+    ANKLES,
+    COLLARS,
+    ELBOWS,
+    FEET,
+    HIPS,
+    JAW_JOINT,
+    KNEES,
+    NECK_HEAD,
+    PELVIS,
+    SHOULDERS,
+    SPINE,
+    WRISTS,
+)
 from ecas.core.config import ConfigError
 from gesture.body.regions import contacts_from_motion
 from gesture.body.rotation import axis_angle_to_matrix
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
-from gesture.config import MicroMotionConfig
 from gesture.data.beat2 import find_takes, read_motion, read_words
 from gesture.data.chunks import chunk_take
 from gesture.data.config import DataConfig
 from gesture.eval.realism import body_frame_joints
+from gesture.layers.micro_motion import MicroMotionOptions
+from gesture.layers.signal import gate_rms
 from gesture.synth.agent import (
     MICRO_GATE_HZ,
     MICRO_GATE_LOG_STD,
     MICRO_GATE_MAX,
     MICRO_PARTS,
     OWN_GATES,
-    gate_rms,
     micro_gate,
     micro_motion,
     micro_noise,
@@ -44,18 +58,18 @@ torch.set_num_threads(1)
 FPS = 25
 # Largest rotation (rad) a joint may reach, by joint group (anatomical upper bounds, generous).
 JOINT_LIMITS_RAD = {
-    **{j: 0.8 for j in (0, 3, 6, 9, 12, 15)},  # root (incl. calibrated pitch), spine, neck, head
+    **{j: 0.8 for j in (PELVIS, *SPINE, *NECK_HEAD)},  # root (incl. calibrated pitch), spine, neck, head
     # hips: the real clip reaches 0.87; the generator's legs twist up to 1.48 (p99 1.44, seeds 0-5 on the real clip's
     # speech, the Gaussian micro-motion's generator as well) when the pelvis turns and tilts over planted feet
-    **{j: 1.5 for j in (1, 2)},
-    **{j: 1.5 for j in (4, 5)},
-    **{j: 0.9 for j in (10, 11)},
-    **{j: 1.1 for j in (7, 8)},  # the pelvis turns (micro-motion) over planted feet: the ankles take it (real: 0.87)
-    **{j: 0.7 for j in (13, 14)},  # real clip: 0.68
-    **{j: 1.9 for j in (16, 17)},
-    **{j: 2.7 for j in (18, 19)},  # elbows: real clip 2.45
-    **{j: 1.5 for j in (20, 21)},  # real clip: 1.30
-    22: 0.2,
+    **{j: 1.5 for j in HIPS},
+    **{j: 1.5 for j in KNEES},
+    **{j: 0.9 for j in FEET},
+    **{j: 1.1 for j in ANKLES},  # the pelvis turns (micro-motion) over planted feet: the ankles take it (real: 0.87)
+    **{j: 0.7 for j in COLLARS},  # real clip: 0.68
+    **{j: 1.9 for j in SHOULDERS},
+    **{j: 2.7 for j in ELBOWS},  # elbows: real clip 2.45
+    **{j: 1.5 for j in WRISTS},  # real clip: 1.30
+    JAW_JOINT: 0.2,
     23: 0.0,
     24: 0.0,
     **{j: 1.7 for j in range(25, 55)},
@@ -127,7 +141,7 @@ def test_gesture_layer_leaves_out_only_the_runtime_layers_micro_motion(dataset, 
     layer = session["gesture_poses"].reshape(-1, 55, 3)
     moved = np.abs(session["poses"] - layer).max(axis=(0, 2))  # (55,)
     assert set(np.flatnonzero(moved > 1e-3)) == set(LAYERED_MICRO_JOINTS)
-    assert set(LAYERED_MICRO_JOINTS) == set(MicroMotionConfig().joints)
+    assert set(LAYERED_MICRO_JOINTS) == set(MicroMotionOptions().joints)
     take = find_takes(dataset[0])[0]
     assert np.array_equal(read_motion(take.motion_path, gesture_layer=True).poses, layer)
     assert np.array_equal(read_motion(take.motion_path).poses, session["poses"])
@@ -158,7 +172,7 @@ def test_no_nan_and_joint_angles_within_limits(session):
     for j, limit in JOINT_LIMITS_RAD.items():
         assert angles[j] <= limit + 1e-6, (j, angles[j], limit)
     # elbows only flex (forearm forward of the upper arm), never hyperextend
-    elbow = axis_angle_to_matrix(poses[:, [18, 19]].astype(np.float64))  # (T, 2, 3, 3)
+    elbow = axis_angle_to_matrix(poses[:, list(ELBOWS)].astype(np.float64))  # (T, 2, 3, 3)
     forward = elbow[..., 2, 0] * np.array([1.0, -1.0])  # z of the forearm's rest direction (+x left, -x right)
     assert (forward > 0).mean() > 0.99
 
@@ -204,7 +218,7 @@ def test_arm_ik_eases_into_full_extension_and_joint_angles_are_soft_limited():
 def test_feet_planted_and_on_the_floor(session):
     contacts = contacts_from_motion(session["poses"], session["trans"])  # (T, 4)
     assert contacts.mean() > 0.8  # the agent paces, as the real speaker does (his feet: in contact in 0.85 of frames)
-    soles = session["joints"][:, [10, 11], 1]
+    soles = session["joints"][:, list(FEET), 1]
     assert np.abs(np.median(soles, axis=0)).max() < 0.02
 
 
@@ -214,7 +228,7 @@ def test_strokes_land_on_stressed_words():
     conv = build_conversation(cfg, np.random.default_rng([7, 1]), 60.0)
     motion = synthesize_agent_motion(cfg, np.random.default_rng([7, 1, 1]), conv, micro={})
     joints = body_frame_joints(motion.poses, Skeleton.default())  # the strokes, not the pacing under them
-    speed = _speed(joints)[:, [20, 21]].max(1)  # (T,) faster wrist
+    speed = _speed(joints)[:, list(WRISTS)].max(1)  # (T,) faster wrist
     window = 5
     padded = np.pad(speed, window, mode="edge")
     local_max = np.stack([padded[k : k + len(speed)] for k in range(2 * window + 1)]).max(0)
@@ -340,7 +354,7 @@ def test_own_gates_are_burstier_at_the_same_rms_and_are_drawn_after_every_joints
         own = micro_gate(z, log_std)
         np.testing.assert_allclose([np.sqrt((arm**2).mean()), np.sqrt((own**2).mean())], [rms, rms], rtol=0.01)
         assert (own < 0.25).mean() > 1.5 * (arm < 0.25).mean()  # more time near still
-    params = {j: MicroNoise(np.full(3, 0.1), 1.0, 0.2) for j in (3, 12, 18, 19, 20, 21)}
+    params = {j: MicroNoise(np.full(3, 0.1), 1.0, 0.2) for j in (SPINE[0], NECK_HEAD[0], *ELBOWS, *WRISTS)}
     got = micro_motion(np.random.default_rng(7), 200, 25.0, params, np.ones(200))
     rng = np.random.default_rng(7)  # the parts' gates, each joint's noise, then the own gates in OWN_GATES' order
     torso = micro_gate(smooth_noise(rng, 200, 25.0, MICRO_GATE_HZ, len(MICRO_PARTS)))[:, 0]  # (T,) the torso's part
@@ -402,7 +416,7 @@ def test_refit_holds_the_kept_joints_and_fits_the_others():
     from tests.data.beat2_clip import CLIP_WAV
 
     stored = load_calibration().micro_motion
-    keep = {j: stored[j] for j in MICRO_JOINTS if j not in (12, 15)}
+    keep = {j: stored[j] for j in MICRO_JOINTS if j not in NECK_HEAD}
     fitted = fit(
         CLIP_NPZ.with_suffix(""),
         seeds=(0,),
@@ -413,7 +427,7 @@ def test_refit_holds_the_kept_joints_and_fits_the_others():
     )
     assert set(fitted) == set(MICRO_JOINTS)
     assert all(fitted[j] is keep[j] for j in keep)
-    assert all(not np.allclose(fitted[j].std_rad, stored[j].std_rad) for j in (12, 15))
+    assert all(not np.allclose(fitted[j].std_rad, stored[j].std_rad) for j in NECK_HEAD)
 
 
 def test_refit_names_a_joint_it_cannot_fit():

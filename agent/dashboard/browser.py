@@ -195,7 +195,9 @@ async def _snapshot(url: str, out: Path, wait: str | None, timeout_s: float, wid
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description="Screenshot a dashboard page with headless Chromium.")
+    p = argparse.ArgumentParser(
+        prog="ecas screenshot", description="Screenshot a dashboard page with headless Chromium."
+    )
     p.add_argument("url")
     p.add_argument("out", type=Path)
     p.add_argument("--wait", metavar="JS", help="a JavaScript condition to wait for before the screenshot")

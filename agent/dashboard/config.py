@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ipaddress
 from dataclasses import dataclass
+from pathlib import Path
 
 from ecas.core.config import ConfigError
 
@@ -28,8 +29,8 @@ class DashboardConfig:
     port: int = 8998
     wait_for_start: bool = False
     browser_mic: bool = False
-    tls_cert: str | None = None
-    tls_key: str | None = None
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
     jpeg_quality: int = 80
     history_steps: int = 250
     max_turns: int = 40

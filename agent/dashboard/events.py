@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agent.latency import step_latency
 from ecas.core.messages import Command, Control, DialogueStep, Metrics, RenderFrame, VadState
 from ecas.core.timing import FRAMES_PER_STEP, SAMPLE_RATE_HZ
 
-NS_PER_MS = 1e6
 MAX_WORDS_PER_TURN = 400  # a longer turn keeps its last words
 AGENT_GAP_STEPS = 10  # steps without agent speech or words that end an agent turn (0.8 s)
 BINARY_HEADER = struct.Struct("<BxHI")  # kind, (pad), frame index, step
@@ -191,7 +191,7 @@ class LatencyMeter:
     """End-to-end and per-stage latency of each step, from the sink's Metrics (the stamps of agent.stage).
 
     A stage's share runs from the previous stage's stamp (or the capture time) to its own stamp: transport,
-    queueing and compute. Stamps are moved to this host's clock with the stages' NTP-style offsets.
+    queueing and compute (`agent.latency.step_latency`, the same numbers as the run's report).
     """
 
     def __init__(self, pipeline: Sequence[str], history_steps: int):
@@ -199,22 +199,14 @@ class LatencyMeter:
         self.history: collections.deque[Event] = collections.deque(maxlen=history_steps)
 
     def on_metrics(self, msg: Metrics, offsets_ns: dict[str, int]) -> list[Event]:
-        if self.pipeline[-1] == "render" and msg.values.get("frame_index", 0) != FRAMES_PER_STEP - 1:
+        latency = step_latency(msg, self.pipeline, offsets_ns)
+        if latency is None:
             return []
-        stamps = {key: t - offsets_ns.get(key.split(".")[0], 0) for key, t in msg.stamps.items()}
-        if any(stage not in stamps for stage in self.pipeline):
-            return []
-        previous = msg.t_origin_ns - offsets_ns.get(self.pipeline[0], 0)
-        stages = {}
-        for stage in self.pipeline:
-            stages[stage] = round((stamps[stage] - previous) / NS_PER_MS, 2)
-            previous = stamps[stage]
-        origin = msg.t_origin_ns - offsets_ns.get(self.pipeline[0], 0)
         event = {
             "type": "latency",
-            "step": msg.step,
-            "e2e_ms": round((stamps[self.pipeline[-1]] - origin) / NS_PER_MS, 2),
-            "stages": stages,
+            "step": latency.step,
+            "e2e_ms": round(latency.e2e_ms, 2),
+            "stages": {stage: round(ms, 2) for stage, ms in latency.total_ms.items()},
         }
         self.history.append(event)
         return [event]

@@ -39,14 +39,15 @@ from agent.stage import SUPERVISOR
 from ecas.core.atomic import write_text_atomic
 from ecas.core.bus import Publisher, Subscriber, stage_address
 from ecas.core.component import RunContext
-from ecas.core.messages import Command, Control, DialogueStep, Message, Metrics, MicAudio, RenderFrame
+from ecas.core.messages import Command, Control, DialogueStep, Kind, Message, Metrics, MicAudio, RenderFrame
 
 log = logging.getLogger("dashboard")
 
 DASHBOARD = "dashboard"
-TOPICS = ("control", "metrics", "dialogue.step", "render.frame")
+TOPICS = tuple(k.value for k in (Kind.CONTROL, Kind.METRICS, Kind.DIALOGUE_STEP, Kind.RENDER_FRAME))
 LIVE_QUEUE_MESSAGES = 64  # data messages waiting here; past it the oldest frames are dropped and counted ...
-KEPT_TOPICS = ("metrics", "dialogue.step")  # ... never the words, speech and latencies (small, one per step)
+# ... never the words, speech and latencies (small, one per step)
+KEPT_TOPICS = (Kind.METRICS.value, Kind.DIALOGUE_STEP.value)
 POLL_S = 0.01
 COUNTERS_EVERY_S = 0.5
 URL_FILE = "dashboard.url"

@@ -41,6 +41,17 @@ class Component(Protocol):
     def close(self) -> None: ...
 
 
+class ClockAware(Protocol):
+    """Optional for a component that compares a step's `t_origin_ns` with its own clock (e.g. to drop late work).
+
+    The stage runner calls it on START with the measured offset of the capturing stage's clock: the origin stage
+    may run on another host (`run.spawn`), whose monotonic clock has another zero.
+    """
+
+    def set_origin_offset_ns(self, offset_ns: int) -> None:
+        """`t_origin_ns + offset_ns` is the capture time on this process's clock."""
+
+
 class Source(Protocol):
     """Blocks of user audio. `paced` sources (a microphone) deliver in real time by themselves."""
 

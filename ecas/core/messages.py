@@ -27,6 +27,8 @@ N_SPEECH_CODES = 8
 
 
 class Kind(str, enum.Enum):
+    """A message's kind; its value is the message's bus topic (the one place topics are named)."""
+
     AUDIO_USER = "audio.user"
     MIC_AUDIO = "mic.audio"
     DIALOGUE_STEP = "dialogue.step"

@@ -24,3 +24,11 @@ def data_root() -> Path:
     if env:
         return Path(env)
     return PACKAGE_DIR.parents[1] / "shared" / "data"
+
+
+REAL_CLIP_ID = "2_scott_0_1_1"  # the real BEAT2 take the evaluation, calibration and benches measure against
+
+
+def real_clip() -> Path:
+    """That take under the data root, without a suffix: `.npz` is its SMPL-X motion, `.wav` its speech."""
+    return data_root() / "beat2" / REAL_CLIP_ID

@@ -6,5 +6,5 @@
 - `streaming.StreamingDecoder(codec).step(codes (B,K,1)) -> (B,2,F)`; `StreamingEncoder(codec).step(frames (B,2,F))`.
 - `inference.inference_codec(codec, "int8") -> GestureCodec`: an eval-mode copy for fast streaming decode.
 - `losses.RegionLoss(region, skeleton)`; `checkpoint.load_codec(dir)` / `save_codec`.
-Training: `python -m gesture.train_codec`; benchmark: `python -m bench.codec --json`.
+Training: `ecas train-codec`; benchmark: `python -m bench.codec --json`.
 """

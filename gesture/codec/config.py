@@ -42,7 +42,7 @@ def _reference_regions() -> dict[str, RegionSizes]:
 
 @dataclass(frozen=True)
 class CodecConfig:
-    """Sizes of the causal RVQ-VAE (defaults: the reference, MIBURI-FACTS section 2)."""
+    """Sizes of the causal RVQ-VAE (defaults: the reference, docs/reference_facts.md §2)."""
 
     latent_dim: int = 256
     n_filters: int = 256

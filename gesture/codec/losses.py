@@ -1,4 +1,4 @@
-"""Reconstruction losses of the region codecs (MIBURI-FACTS section 2), on (B, T, nfeats) features.
+"""Reconstruction losses of the region codecs (docs/reference_facts.md §2), on (B, T, nfeats) features.
 
 Terms (weights from the reference):
 - every region's rotations: 6D MSE x1, Laplacian x2, geodesic x1, axis-angle MSE x1, rotation-matrix

@@ -1,6 +1,6 @@
 """Train one region codec.
 
-    python -m gesture.train_codec --config ecas/configs/codec/small.yaml --region upper \
+    ecas train-codec --config ecas/configs/codec/small.yaml --region upper \
         [--data ../shared/data/beat2/2_scott_0_1_1.npz] [--steps N] [--out DIR] [--resume]
         [--finetune-decoder TRAINED_DIR | --init-from TRAINED_DIR]
 
@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from ecas.core.body import REGIONS
 from ecas.core.config import ConfigError
-from ecas.core.paths import data_root
+from ecas.core.paths import real_clip
 from ecas.core.threads import limit_threads
 from gesture.body.skeleton import Skeleton
 from gesture.codec.build import build_codec
@@ -41,7 +41,7 @@ from gesture.codec.evaluation import evaluate
 from gesture.codec.losses import RegionLoss
 from gesture.codec.model import GestureCodec
 
-DEFAULT_DATA = data_root() / "beat2" / "2_scott_0_1_1.npz"
+DEFAULT_DATA = real_clip().with_suffix(".npz")
 
 
 def commitment_ramp(step: int, ramp_steps: int) -> float:
@@ -191,7 +191,7 @@ def _summary(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     limit_threads()
-    parser = argparse.ArgumentParser(description="Train a gesture region codec.")
+    parser = argparse.ArgumentParser(prog="ecas train-codec", description="Train a gesture region codec.")
     parser.add_argument("--config", required=True, type=Path, help="ecas/configs/codec/*.yaml")
     parser.add_argument("--region", required=True, choices=REGIONS)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="a BEAT2 motion npz or a chunk cache dir")
@@ -281,3 +281,7 @@ def _run(trainer: CodecTrainer, steps: int, resume: bool) -> None:
             if lead and (trainer.step % every == 0 or trainer.step == steps):
                 tqdm.write(_summary(trainer.evaluate()), file=sys.stderr)
                 trainer.save()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -21,7 +21,7 @@ from gesture.data.config import DataConfig, load_data_config
 
 def main(argv=None) -> int:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas data-build", description=__doc__.splitlines()[0])
     parser.add_argument("--root", help="BEAT2 language directory, or a directory of <id>.npz/.wav files")
     parser.add_argument("--out", help="cache directory")
     parser.add_argument("--config", help="YAML with data options (ecas/configs/data/*.yaml); --root/--out override it")
@@ -39,7 +39,9 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     n_chunks = sum(t["num_chunks"] for t in result["takes"].values())
-    print(f"{out}: {len(result['takes'])} takes ({result['built']} built, {result['reused']} reused), {n_chunks} chunks")
+    print(
+        f"{out}: {len(result['takes'])} takes ({result['built']} built, {result['reused']} reused), {n_chunks} chunks"
+    )
     return 0
 
 

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-
 from ecas.core.config import ConfigError, build_dataclass, load_yaml
+from ecas.core.paths import data_root
 from ecas.core.timing import MOTION_FPS
 
 AUDIO_SAMPLE_RATE_HZ = 16_000
@@ -17,14 +17,14 @@ AUDIO_SAMPLE_RATE_HZ = 16_000
 class DataConfig:
     """Where BEAT2 lives, where the cache goes, and how takes are cut into chunks."""
 
-    root: str = "../shared/data/beat2"
-    cache_dir: str = "cache/beat2"
+    root: Path = field(default_factory=lambda: data_root() / "beat2")
+    cache_dir: Path = Path("cache/beat2")
     motion_fps: int = MOTION_FPS
     chunk_frames: int = 250  # 10 s at 25 fps
     audio_sample_rate_hz: int = AUDIO_SAMPLE_RATE_HZ
     default_split: str = "train"  # for takes that train_test_split.csv does not list (or without a csv)
     exclude_speakers: tuple[str, ...] = ()
-    smplx_model: Optional[str] = None  # a real SMPL-X model file for the contact FK; None = built-in skeleton
+    smplx_model: Optional[Path] = None  # a real SMPL-X model file for the contact FK; None = built-in skeleton
 
     def __post_init__(self) -> None:
         if self.motion_fps <= 0:

@@ -1,7 +1,7 @@
 """Evaluate a predicted motion against ground truth:
-``python -m gesture.evaluate --motion pred.npz --gt gt.npz --wav speech.wav --json``;
-the shipped default agent's quality report: ``python -m gesture.evaluate --suite default --json`` (gesture.eval.suite),
-and its realism against a real speaker: ``python -m gesture.evaluate --suite real --json`` (gesture.eval.realism).
+``ecas evaluate --motion pred.npz --gt gt.npz --wav speech.wav --json``;
+the shipped default agent's quality report: ``ecas evaluate --suite default --json`` (gesture.eval.suite),
+and its realism against a real speaker: ``ecas evaluate --suite real --json`` (gesture.eval.realism).
 
 Motion files: BEAT2-style npz (poses (T, 165) or (T, 55, 3), trans, expressions; rate from
 ``mocap_frame_rate`` or ``fps``, default 25). The protocol is described in gesture.eval.metrics.
@@ -45,7 +45,9 @@ def main(argv=None) -> int:
         from gesture.eval.suite import main as suite_main  # the default agent's quality report (gesture.eval.suite)
 
         return suite_main(argv)
-    parser = argparse.ArgumentParser(description="Gesture metrics of a predicted motion against ground truth.")
+    parser = argparse.ArgumentParser(
+        prog="ecas evaluate", description="Gesture metrics of a predicted motion against ground truth."
+    )
     parser.add_argument("--motion", required=True, help="predicted motion npz")
     parser.add_argument("--gt", required=True, help="ground-truth motion npz")
     parser.add_argument("--wav", help="the speech (for BeatAlign)")
@@ -83,3 +85,7 @@ def main(argv=None) -> int:
 
 def _one_line(err: Exception) -> str:
     return " ".join(str(err).split())
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -17,7 +17,8 @@ the number of features: "mean squared shift per feature, in GT standard deviatio
 (tests/test_fgd.py checks these): a 0.4 s delay of GT about 0.003, the clip's first half against its second
 about 0.6, rotation noise of 0.0025 / 0.005 / 0.01 / 0.02 rad on the body joints about 1 / 3 / 6 / 12, a frozen
 body about 34.
-- ``gesture.eval.fgd_vaeskconv.VAESKConvEncoder``: BEAT2's learned ``AESKConv_240_100.bin`` encoder when the user has it.
+- ``gesture.eval.fgd_vaeskconv.VAESKConvEncoder``: BEAT2's learned ``AESKConv_240_100.bin`` encoder when the user
+  has it.
 """
 
 from __future__ import annotations

@@ -36,7 +36,6 @@ KERNEL_SIZE = 4
 NEIGHBOUR_DISTANCE = 2
 GROUP_NORM_GROUPS = 10
 CLIP_MULTIPLE_FRAMES = 32
-TEMPORAL_DOWNSAMPLING = 2 ** len(GROWTH)
 
 
 def edge_topology(parents: Sequence[int]) -> list[Edge]:

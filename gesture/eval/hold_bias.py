@@ -97,7 +97,7 @@ def measure(
 
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="ecas hold-bias", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG)
     parser.add_argument("--biases", type=float, nargs="+", default=[0.0, 0.25, 0.5, 0.75, 1.0])
     parser.add_argument("--levels", type=int, nargs="+", help="token levels to match (default: gesture.hold_levels)")

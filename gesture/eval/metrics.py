@@ -1,4 +1,4 @@
-"""Gesture metrics computed exactly as the reference computes them (MIBURI-FACTS section 6).
+"""Gesture metrics computed exactly as the reference computes them (docs/reference_facts.md §6).
 
 The reference protocol, step by step (checked number for number against the reference's own outputs in
 ``../shared/reference/metrics_golden`` by tests/test_metrics_golden.py):

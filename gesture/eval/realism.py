@@ -1,6 +1,6 @@
 """Realism report: motion generated for real speech against the real speaker's motion on that speech.
 
-    python -m gesture.realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
+    ecas realism --json [--seed N] [--out DIR] [--motion DIR/motion.npz] [--synthetic NPZ] [--no-video]
         [--config YAML] [--set KEY=VALUE ...]   (passed to launch.py, e.g. a candidate agent or other checkpoints)
         [--clip PATH/TAKE [--wav WAV]]   (another real take: TAKE.npz, and its speech TAKE.wav or WAV)
 
@@ -9,8 +9,7 @@ The real BEAT2 clip's speech (``../shared/data/beat2/2_scott_0_1_1.wav``) is spo
 ``--motion`` reuses one) and compared with the real motion of that clip. Two references are measured the same
 way, so the report is seen to discriminate:
 
-- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.alternation_filter``,
-  ``gesture.micro_motion``, ``gesture.face``, ``gesture.foot_lock`` and ``gesture.stabilizer`` off): what its LM and
+- ``generated_codecs_only``: the same agent without its runtime layers (``gesture.layers=[]``): what its LM and
   codecs alone carry; not measured with ``--motion``;
 - ``synthetic_gt``: the synthetic generator (gesture.synth) driven by the clip's own audio and word timings;
 - ``baseline``: the clip's mean pose held still plus smooth noise (``BASELINE_NOISE_RAD``);
@@ -37,7 +36,7 @@ Measures (all at 25 fps, ``EDGE_S`` dropped at each end):
 - per joint group, the share of its angular velocity's power at ``FAST_BAND_HZ`` (``spectra``: how much of its
   motion is quick small movement rather than slow drift; the real speaker's spine has about a third there);
 - the chest and the head in space (``world``, ``WORLD_PARTS``): the angular speed and acceleration of their world
-  rotations. A speaker's spine and neck counter the turns beneath them (gesture.synth.reflex), so his head moves more
+  rotations. A speaker's spine and neck counter the turns beneath them (gesture.layers.reflex), so his head moves more
   steadily in space than its joints' local speeds suggest.
 
 Every scalar is also given as a ratio to the real clip's. ``--out`` gets ``realism.json``, ``speeds.png`` (the
@@ -61,9 +60,9 @@ import torch
 from scipy.ndimage import binary_closing, gaussian_filter1d, label, median_filter
 from scipy.signal import find_peaks
 
-from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, WRISTS
+from ecas.core.body import ANKLES, COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, SPINE, WRISTS
 from ecas.core.errors import DataError
-from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.paths import CHECKPOINTS_DIR, DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import MOTION_FPS
 from gesture.body.motion import canonicalize
@@ -76,9 +75,8 @@ from gesture.body.rotation import (
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 from gesture.eval import metrics as M
 
-ROOT = Path(__file__).resolve().parents[2]
 SHARED_BEAT2 = data_root() / "beat2"
-REAL_CLIP = SHARED_BEAT2 / "2_scott_0_1_1"
+REAL_CLIP = real_clip()
 MEAN_SPEED_NPY = SHARED_BEAT2 / "mean_vel_smplxflame_30.npy"
 DEFAULT_APP_CONFIG = DEFAULT_CONFIG
 
@@ -88,15 +86,14 @@ JOINT_GROUPS = {
     "shoulders": SHOULDERS,
     "collars": COLLARS,
     "neck_head": NECK_HEAD,
-    "spine": (3, 6, 9),
+    "spine": SPINE,
 }
-# the config sections of the layers after decoding
-RUNTIME_LAYERS = ("alternation_filter", "micro_motion", "face", "foot_lock", "stabilizer")
-GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # issue 18's goals name these four ...
+WITHOUT_LAYERS = "gesture.layers=[]"  # the agent's LM and codecs alone: an empty list of runtime layers
+GOAL_GROUPS = ("wrists", "elbows", "neck_head", "spine")  # the realism goals name these four ...
 GROUP_GOAL_RANGE = (0.67, 1.5)  # ... and this range for every ratio of theirs
 STILL_RAD_S = 0.2
 FAST_BAND_HZ = (2.0, 8.0)
-WORLD_PARTS = {"chest": (0, 3, 6, 9), "head": (0, 3, 6, 9, 12, 15)}  # root-to-part chains measured in space
+WORLD_PARTS = {"chest": (PELVIS, *SPINE), "head": (PELVIS, *SPINE, *NECK_HEAD)}  # root-to-part chains measured in space
 EDGE_S = 2.0
 PLANTED_MPS = 0.02  # an ankle moving slower than this over the floor is planted
 STEP_MPS, STEP_MIN_M, STEP_SMOOTH_FRAMES = 0.1, 0.03, 1.0  # a step: an ankle faster than this, ending this far away
@@ -206,7 +203,7 @@ def fast_power_shares(poses: np.ndarray, fps: float = MOTION_FPS) -> dict:
 
 def world_rotations(poses: np.ndarray, chain: Sequence[int]) -> np.ndarray:
     """(T, J, 3) axis-angle -> (T, 3, 3): the world rotation of the last joint of ``chain`` (from the root down)."""
-    from gesture.synth.reflex import chain_world
+    from gesture.layers.reflex import chain_world
 
     local = axis_angle_to_matrix(np.asarray(poses, np.float64))  # (T, J, 3, 3)
     return chain_world(local, np.broadcast_to(np.eye(3), local[:, 0].shape), tuple(chain))
@@ -289,7 +286,8 @@ def step_count(ankle_xz: np.ndarray, fps: float = MOTION_FPS) -> int:
 
 def feet_stats(poses: np.ndarray, trans: np.ndarray, skeleton: Skeleton, fps: float = MOTION_FPS) -> dict:
     """The ankles' horizontal speed in the world (m/s): the fraction of frames they are planted, and its 90th
-    percentile (steps); steps per minute per ankle; how far the pelvis gets over the floor in one second (median, m/s)."""
+    percentile (steps); steps per minute per ankle; how far the pelvis gets over the floor in one second (median,
+    m/s)."""
     joints, _ = forward_kinematics_np(skeleton, np.asarray(poses, np.float32), np.asarray(trans, np.float32))
     floor = joints[..., [0, 2]]  # (T, J, 2)
     speed = np.linalg.norm(np.diff(floor[:, list(ANKLES)], axis=0), axis=-1).reshape(-1) * fps
@@ -458,7 +456,8 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
     report_dir.mkdir(parents=True, exist_ok=True)
     cmd = [
         sys.executable,
-        str(ROOT / "launch.py"),
+        "-m",
+        "ecas.launch",
         "--config",
         str(config),
         "--speak",
@@ -470,12 +469,12 @@ def speak_clip(wav: Path, seed: int, report_dir: Path, config: Path, overrides: 
         str(report_dir),
     ] + [arg for item in overrides for arg in ("--set", item)]
     with open(report_dir / "launch.out", "w") as log:
-        subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
+        subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, check=True)
     return report_dir / "motion.npz"
 
 
 def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
-    """The codec directory of the app ``config`` with launch.py ``--set`` ``overrides`` (relative to the repository)."""
+    """The codec directory of the app ``config`` with ``--set`` ``overrides``."""
     from ecas.core.config import apply_override, build_dataclass, load_yaml, parse_override
     from gesture.config import GestureConfig
 
@@ -483,7 +482,7 @@ def config_codecs(config: Path, overrides: Sequence[str] = ()) -> Path:
     for text in overrides:
         apply_override(tree, *parse_override(text))
     codecs = build_dataclass(GestureConfig, tree.get("gesture"), "gesture").codec_checkpoints
-    return ROOT / (codecs if codecs is not None else "ecas/checkpoints/codecs")
+    return codecs if codecs is not None else CHECKPOINTS_DIR / "codecs"
 
 
 def halves(clip: M.MotionClip) -> tuple[M.MotionClip, M.MotionClip]:
@@ -647,7 +646,7 @@ def format_table(report: dict) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m gesture.realism", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas realism", description=__doc__.splitlines()[0])
     p.add_argument(
         "--seed", type=int, default=0, help="sampling seed of the agent, the synthetic reference and the baseline"
     )
@@ -674,7 +673,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-video", action="store_true", help="skip the side-by-side MP4")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     args = p.parse_args(argv)
-    out = Path(args.out) if args.out else ROOT / "runs" / f"realism_seed{args.seed}"
+    out = Path(args.out) if args.out else Path("runs") / f"realism_seed{args.seed}"
     real_npz, wav = Path(args.clip + ".npz"), Path(args.wav or args.clip + ".wav")
     try:
         given = tuple(Path(x) for x in (args.motion, args.synthetic) if x)
@@ -703,7 +702,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 args.seed,
                 out / "agent_codecs_only",
                 config,
-                args.set + [f"gesture.{layer}.enabled=false" for layer in RUNTIME_LAYERS],
+                args.set + [WITHOUT_LAYERS],
             )
             motions["generated_codecs_only"] = cut(load_clip(plain_npz), n)
         motions |= {
@@ -730,3 +729,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     (out / "realism.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report) if args.json else format_table(report))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

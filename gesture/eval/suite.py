@@ -1,18 +1,18 @@
-"""The default agent's quality report: ``python -m gesture.evaluate --suite default [--json]``.
+"""The default agent's quality report: ``ecas evaluate --suite default [--json]``.
 
 It loads the generator exactly as the runtime does (the `gesture:` section of ecas/configs/default.yaml, checked
 against the local backend's condition spec) and measures:
 - on held-out synthetic sessions (the `test` split of a synthetic directory; by default sessions k = 10, 20,
   ..., 100 of seed 0, 3 minutes each, generated on first use and again whenever the generator changes:
-  scripts/train_default.sh holds every 10th session of the same data out of training, so none of them was seen), the agent's motion generated step by step from what
-  the local dialogue backend would emit for the session's agent speech (speech codes of the agent audio, a text
-  token at each word's first step), against the session's ground truth:
-  BeatAlign and L1 divergence (the reference protocol of gesture.eval.metrics, built-in skeleton), voice-activity accuracy of the VA head, the ratio
-  of mean joint speed while listening to while speaking, and the codecs' MPJPE (all three regions through
-  encode -> decode) on what they model, the sessions' ``gesture_poses`` (the motion without the micro-motion that
-  the agent's runtime layer adds, gesture.micro_motion), and on the whole motion for comparison. 30 minutes in
-  all: the listening/speaking ratio of a single minute moves by ±40 % with the sampling seed alone, more than the
-  goal's tolerance;
+  scripts/train_default.sh holds every 10th session of the same data out of training, so none of them was seen),
+  the agent's motion generated step by step from what the local dialogue backend would emit for the session's
+  agent speech (speech codes of the agent audio, a text token at each word's first step), against the session's
+  ground truth: BeatAlign and L1 divergence (the reference protocol of gesture.eval.metrics, built-in skeleton),
+  voice-activity accuracy of the VA head, the ratio of mean joint speed while listening to while speaking, and the
+  codecs' MPJPE (all three regions through encode -> decode) on what they model, the sessions' ``gesture_poses`` (the
+  motion without the micro-motion that the agent's runtime layer adds, gesture.layers.micro_motion), and on the whole
+  motion for comparison. 30 minutes in all: the listening/speaking ratio of a single minute moves by ±40 % with the
+  sampling seed alone, more than the goal's tolerance;
 - on the real BEAT2 clip spoken by the `playback` backend (its DialogueSteps fed to the generator): BeatAlign
   and L1 divergence next to GT's;
 - no collapse: the mean joint speed over a 5-minute generated session (held-out conditions, looped) against its
@@ -37,7 +37,7 @@ import torch
 
 from ecas.core.body import REGIONS
 from ecas.core.config import build_dataclass, load_yaml
-from ecas.core.paths import DEFAULT_CONFIG, data_root
+from ecas.core.paths import CHECKPOINTS_DIR, DEFAULT_CONFIG, data_root, real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import FRAMES_PER_STEP, MOTION_FPS, SAMPLE_RATE_HZ, STEP_HZ, STEP_SAMPLES
 from gesture.body.motion import canonicalize
@@ -54,10 +54,9 @@ from gesture.generator import GestureGenerator
 from gesture.lm.codecs import load_codecs
 from gesture.lm.tokenize import TokenizedTake, agent_audio_path, tokenize_take
 
-REPO = Path(__file__).resolve().parents[2]
 SHARED_DATA = data_root()
-DEFAULT_LM = Path("ecas/checkpoints/gesture_lm")
-DEFAULT_CODECS = Path("ecas/checkpoints/codecs")
+DEFAULT_LM = CHECKPOINTS_DIR / "gesture_lm"
+DEFAULT_CODECS = CHECKPOINTS_DIR / "codecs"
 GOALS = {
     "l1div_rel_error_max": 0.25,  # |L1div / L1div_GT - 1|
     "beat_align_abs_error_max": 0.05,  # |BeatAlign - BeatAlign_GT|
@@ -71,9 +70,9 @@ GOALS = {
 @dataclass(frozen=True)
 class SuiteOptions:
     config: Path = DEFAULT_CONFIG
-    synthetic_root: Path = REPO / "runs" / "suite_heldout"  # generated on first use (see ensure_heldout)
-    beat2_motion: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.npz"
-    beat2_wav: Path = SHARED_DATA / "beat2" / "2_scott_0_1_1.wav"
+    synthetic_root: Path = Path("runs") / "suite_heldout"  # generated on first use (see ensure_heldout)
+    beat2_motion: Path = real_clip().with_suffix(".npz")
+    beat2_wav: Path = real_clip().with_suffix(".wav")
     mean_speed: Path = SHARED_DATA / "beat2" / "mean_vel_smplxflame_30.npy"
     heldout_sessions: int = 10
     heldout_seconds: float = 180.0
@@ -105,9 +104,9 @@ def default_gesture_config(config_path: Path) -> tuple[GestureConfig, object]:
     tree = load_yaml(config_path)
     gesture = build_dataclass(GestureConfig, tree.get("gesture"), "gesture")
     if gesture.lm_checkpoint is None:
-        gesture = dataclasses.replace(gesture, lm_checkpoint=REPO / DEFAULT_LM)
+        gesture = dataclasses.replace(gesture, lm_checkpoint=DEFAULT_LM)
     if gesture.codec_checkpoints is None:
-        gesture = dataclasses.replace(gesture, codec_checkpoints=REPO / DEFAULT_CODECS)
+        gesture = dataclasses.replace(gesture, codec_checkpoints=DEFAULT_CODECS)
     dialogue = build_dataclass(DialogueConfig, tree.get("dialogue"), "dialogue")
     return dataclasses.replace(gesture, dialogue_spec=LOCAL_SPEC), dialogue
 
@@ -248,7 +247,7 @@ def load_heldout(
     takes = _test_takes(root)[:n_sessions]
     if not takes:
         raise FileNotFoundError(
-            f"{root}: no held-out (test split) synthetic sessions; generate them with python -m gesture.data.synthetic"
+            f"{root}: no held-out (test split) synthetic sessions; generate them with ecas synthetic"
         )
     tokenizer = SpeechTokenizer.load(DEFAULT_CHECKPOINT)
     max_steps = int(max_seconds * STEP_HZ)
@@ -447,11 +446,13 @@ def format_table(report: dict) -> str:
         f"| voice-activity accuracy | {m['va_accuracy']:.3f} | – | ≥ 0.90 | {ok['va_accuracy']} |",
         f"| listening/speaking motion energy | {m['energy_ratio']:.3f} | {m['energy_ratio_gt']:.3f} "
         f"| within ±30% of GT | {ok['energy_ratio_rel_error']} |",
-        f"| codec MPJPE (mm, 3 regions; gesture layer) | {m['codec_mpjpe_mm']:.1f} | – | ≤ 20 | {ok['codec_mpjpe_mm']} |",
+        f"| codec MPJPE (mm, 3 regions; gesture layer) | {m['codec_mpjpe_mm']:.1f} | – | ≤ 20 "
+        f"| {ok['codec_mpjpe_mm']} |",
         f"| codec MPJPE (mm, 3 regions; with the micro-motion) | {m['codec_mpjpe_whole_motion_mm']:.1f} | – | – | – |",
         f"| BEAT2 clip (playback) BeatAlign | {b['beat_align']:.3f} | {b['beat_align_gt']:.3f} | – | – |",
         f"| BEAT2 clip (playback) L1div | {b['l1div']:.3f} | {b['l1div_gt']:.3f} | – | – |",
-        f"| no collapse: mean speed {c['minutes']:g} min / first min | {c['mean_speed']:.3f} / {c['first_minute_speed']:.3f} m/s "
+        f"| no collapse: mean speed {c['minutes']:g} min / first min "
+        f"| {c['mean_speed']:.3f} / {c['first_minute_speed']:.3f} m/s "
         f"| – | within ±30% | {ok['collapse_rel_change']} |",
     ]
     return "\n".join(lines)
@@ -470,7 +471,7 @@ def _json_safe(value):
 def main(argv: Sequence[str] | None = None) -> int:
     limit_threads()
     defaults = SuiteOptions()
-    parser = argparse.ArgumentParser(description="Quality report of the shipped default agent.")
+    parser = argparse.ArgumentParser(prog="ecas suite", description="Quality report of the shipped default agent.")
     parser.add_argument("--suite", choices=["default"], default="default")
     parser.add_argument("--json", action="store_true", help="print one JSON object after the table")
     parser.add_argument("--config", type=Path, default=defaults.config, help="app config with the gesture: section")
@@ -506,3 +507,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.out:
         args.out.write_text(json.dumps(report, indent=1))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

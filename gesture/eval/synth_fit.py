@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ecas.core.paths import data_root
+from ecas.core.body import COLLARS, ELBOWS, NECK_HEAD, PELVIS, SHOULDERS, SPINE, WRISTS
+from ecas.core.paths import real_clip
 from ecas.core.threads import limit_threads
 from ecas.core.timing import MOTION_FPS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
@@ -31,7 +32,9 @@ from gesture.synth.calibration import CALIBRATION_JSON, MicroNoise, load_calibra
 from gesture.synth.recording import motion_for_recording, recognised_words
 from gesture.synth.tracks import lowpass_noise
 
-MICRO_JOINTS = (0, 3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21)  # pelvis, spine, neck, collars, head, arms
+MICRO_JOINTS = tuple(
+    sorted((PELVIS, *SPINE, *NECK_HEAD, *COLLARS, *SHOULDERS, *ELBOWS, *WRISTS))
+)  # the arms, the trunk
 STD_FLOOR = 0.25  # of the real std: every joint keeps some micro-motion
 MAX_STEP = 2.0  # largest multiplicative correction per iteration
 PROBE_HZ = 1.0
@@ -39,7 +42,7 @@ INITIAL_FAST_RATIO = 0.3  # the quick noise's size, relative to the slow one's, 
 MAX_FAST_RATIO = 3.0
 MAX_CUTOFF_HZ = 3.0  # faster noise is jitter, not motion (a joint whose planned motion is already too spread, the
 # shoulders, would otherwise buy its median speed with it)
-REAL_CLIP = data_root() / "beat2" / "2_scott_0_1_1"
+REAL_CLIP = real_clip()
 
 
 def rotation_residuals(poses: np.ndarray) -> np.ndarray:
@@ -117,7 +120,7 @@ def fit(
 
 def main(argv=None) -> int:
     limit_threads()
-    p = argparse.ArgumentParser(prog="python -m gesture.eval.synth_fit", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="ecas synth-fit", description=__doc__.splitlines()[0])
     p.add_argument("--clip", default=str(REAL_CLIP), help="the real clip without extension (.npz and .wav)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     p.add_argument("--iterations", type=int, default=10, help="the three statistics settle within 1-3 %% by 8")

@@ -15,7 +15,7 @@ N_FACE_LEVELS = 4
 
 @dataclass(frozen=True)
 class LMConfig:
-    """Sizes of the gesture language model (defaults = the reference, MIBURI-FACTS section 3)."""
+    """Sizes of the gesture language model (defaults = the reference, docs/reference_facts.md §3)."""
 
     d_model: int = 256
     temporal_layers: int = 4

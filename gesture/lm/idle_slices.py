@@ -1,10 +1,10 @@
-"""Idle token slices for the runtime's idle gate (MIBURI-FACTS section 5) from tokenized training recordings.
+"""Idle token slices for the runtime's idle gate (`gesture.layers.idle_gate`) from tokenized training recordings.
 
     python -m gesture.lm.idle_slices --data runs/default/lm_data --out ecas/checkpoints/gesture_lm/idle
 
 The slice is the longest listening stretch (voice activity 0 at every step) among the recordings of
 `gesture.lm.data`, trimmed by `--trim-steps` at both ends so that it starts and ends inside the listening
-behaviour rather than on a turn change. It is written in the reference layout that `gesture.lm.idle` reads:
+behaviour rather than on a turn change. It is written in the reference layout that `gesture.layers.idle_gate` reads:
 idle_upper_tokens_slices.npz and idle_face_tokens_slices.npz, key "0", shape (1, levels, T).
 """
 
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gesture.lm.idle import IDLE_FILES
+from gesture.layers.idle_gate import IDLE_FILES
 
 
 def longest_silent_run(vad: np.ndarray) -> tuple[int, int]:
@@ -54,7 +54,7 @@ def write_idle_slices(out: Path, tokens: np.ndarray, n_upper: int, n_lower: int)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas idle-slices", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="directory of tokenized recordings (*.npz)")
     parser.add_argument("--out", type=Path, required=True, help="directory for the two slice files")
     parser.add_argument("--trim-steps", type=int, default=4, help="steps dropped at each end of the stretch")

@@ -4,7 +4,7 @@ A layer: x += SA(norm1 x); qa = norm3[0] x; qt = norm3[1] qa (sequential norms, 
 x += ca_gating(SiLU(memory_projs[0](cat(CA_audio(qa), CA_text(qt))))); x += gating(norm2 x).
 The temporal layer has one copy of every projection; the depth layer has one per depth position for the attention
 projections, `gating` and `ca_gating` (norms and `memory_projs` are shared). Checkpoint names follow
-MIBURI-FACTS section 4. These are the trainable, stateless full-sequence forms; the cached step path is
+docs/reference_facts.md §4. These are the trainable, stateless full-sequence forms; the cached step path is
 `gesture.lm.stepper`.
 """
 
@@ -133,7 +133,7 @@ class DepthLayer(_LayerNorms):
     """One depth layer over S positions with per-position weights.
 
     Cross-attention is over one memory token (the current condition); its key/value projections are those of
-    position 0 at every position (MIBURI-FACTS section 9). Rows in `cross_masked` attend to nothing and give zeros.
+    position 0 at every position (docs/reference_facts.md §7). Rows in `cross_masked` attend to nothing and give zeros.
     """
 
     def __init__(

@@ -1,4 +1,4 @@
-"""Training losses of the gesture LM (MIBURI-FACTS section 3): weighted per-level CE, InfoNCE on Gumbel-softmax
+"""Training losses of the gesture LM (docs/reference_facts.md §3): weighted per-level CE, InfoNCE on Gumbel-softmax
 latents, and the voice-activity BCE."""
 
 from __future__ import annotations

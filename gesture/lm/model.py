@@ -1,4 +1,4 @@
-"""The gesture language model (MIBURI-FACTS section 3): a temporal transformer over 80 ms steps and a depth
+"""The gesture language model (docs/reference_facts.md §3): a temporal transformer over 80 ms steps and a depth
 (kinematic) transformer over the 20 codebook levels of a step, conditioned on a text token and 8 audio codes.
 
 This module is stateless: `forward` is the teacher-forced full-sequence pass used in training and as the
@@ -229,7 +229,7 @@ class GestureLM(nn.Module):
 
     def set_codec_codebooks(self, vectors: list[torch.Tensor], init_embeddings: bool = True) -> None:
         """Store the 20 frozen codec codebooks (card, code_dim) and, for a fresh model, initialise the temporal and
-        depth gesture tables from them (MIBURI-FACTS section 3)."""
+        depth gesture tables from them (docs/reference_facts.md §3)."""
         if len(vectors) != self.sizes.n_levels:
             raise ValueError(f"expected {self.sizes.n_levels} codebooks, got {len(vectors)}")
         with torch.no_grad():

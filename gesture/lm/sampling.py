@@ -1,4 +1,4 @@
-"""Token sampling of the gesture generator (MIBURI-FACTS section 3): temperature, top-p, classifier-free guidance,
+"""Token sampling of the gesture generator (docs/reference_facts.md §3): temperature, top-p, classifier-free guidance,
 and pad masking (pad is never emitted, at any level).
 
 The top-p rule: order the tokens by decreasing probability (equal probabilities: lower token id first) and keep a

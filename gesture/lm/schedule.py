@@ -1,4 +1,4 @@
-"""Training schedules of the gesture LM (MIBURI-FACTS section 3), as functions of the (fractional) epoch.
+"""Training schedules of the gesture LM (docs/reference_facts.md §3), as functions of the (fractional) epoch.
 
 - before `warmup_epochs`: unconditional (every condition token dropped);
 - then each sample's audio and text are dropped independently with a probability going 1.0 → `cond_drop_final`

@@ -9,10 +9,11 @@ guided logits null + c·(cond − null) as one (card+1,) row: the classifiers ar
 of the guided hidden state, one row instead of two and no guidance ops on the logits.
 
 Weights of the matrix products are stored in `dtype` (a `gesture.nn.weights` form: float32, bfloat16, or per-row
-int8 with bfloat16 activations, each with the fastest kernel this CPU runs). The residual streams, norms, softmax and the temporal caches stay
-float32; the depth keys/values are stored in the products' output dtype (they are its outputs, unrounded).
-Every buffer is allocated once: the rings (`gesture.nn.RingKVCache.push`) hold exactly the attention windows (self
-25, cross 50 steps), so a query sees every filled slot and needs no mask. Nothing grows with the session.
+int8 with bfloat16 activations, each with the fastest kernel this CPU runs). The residual streams, norms, softmax and
+the temporal caches stay float32; the depth keys/values are stored in the products' output dtype (they are its
+outputs, unrounded). Every buffer is allocated once: the rings (`gesture.nn.RingKVCache.push`) hold exactly the
+attention windows (self 25, cross 50 steps), so a query sees every filled slot and needs no mask. Nothing grows with
+the session.
 """
 
 from __future__ import annotations

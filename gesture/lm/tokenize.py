@@ -1,6 +1,6 @@
 """Turn a BEAT2-layout directory into the gesture LM's training set (the npz format of `gesture.lm.data`).
 
-    python -m gesture.data.tokenize --root DIR --codecs CODECS_DIR --out LM_DATA_DIR [--splits train]
+    ecas tokenize --root DIR --codecs CODECS_DIR --out LM_DATA_DIR [--splits train]
 
 Per take, at 12.5 steps/s (T steps = frames // 2):
 - `gesture_tokens` (20, T): the take's motion (25 fps, canonicalised once at its first frame) through the three
@@ -233,7 +233,9 @@ def main(argv=None) -> int:
     limit_threads()
     from tqdm import tqdm
 
-    parser = argparse.ArgumentParser(description="Tokenize a BEAT2-layout directory for gesture LM training.")
+    parser = argparse.ArgumentParser(
+        prog="ecas tokenize", description="Tokenize a BEAT2-layout directory for gesture LM training."
+    )
     parser.add_argument("--root", type=Path, required=True, help="BEAT2-layout directory (or bare <id>.npz/.wav)")
     parser.add_argument("--codecs", type=Path, required=True, help="directory with the upper/, lower/, face/ codecs")
     parser.add_argument("--out", type=Path, required=True, help="output directory of npz recordings")
@@ -260,3 +262,7 @@ def main(argv=None) -> int:
         return 2
     print(json.dumps(summary))
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

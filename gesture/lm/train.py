@@ -1,7 +1,7 @@
-"""Train the gesture LM: `python -m gesture.train_lm --config ecas/configs/lm/small.yaml --data DIR --out DIR`.
+"""Train the gesture LM: `ecas train-lm --config ecas/configs/lm/small.yaml --data DIR --out DIR`.
 
 Data: a directory in the format of `gesture.lm.data` (npz per recording + spec.json). Losses and schedules follow
-MIBURI-FACTS section 3 (weighted CE, InfoNCE on Gumbel-softmax latents, voice-activity BCE; warm-up, CFG condition
+docs/reference_facts.md §3 (weighted CE, InfoNCE on Gumbel-softmax latents, voice-activity BCE; warm-up, CFG condition
 dropout, pad input dropout, tau annealing) with epoch thresholds from the config. `--codecs DIR` takes the three
 trained codecs whose codebooks initialise the gesture tables and define the InfoNCE latents; without it the
 model's own random tables stand in (a smoke-test setting). Checkpoints (safetensors + sizes + condition spec) and
@@ -196,7 +196,7 @@ def _checkpoint(model, optimizer, scheduler, generator, history, out_dir: Path, 
 
 def main(argv: list[str] | None = None) -> int:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas train-lm", description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, required=True, help="ecas/configs/lm/*.yaml")
     parser.add_argument("--data", type=Path, required=True, help="directory of npz recordings (gesture.lm.data)")
     parser.add_argument("--out", type=Path, required=True, help="checkpoint directory (resumed if it exists)")
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.epochs is not None and args.epochs < 1:
         return _usage_error(f"--epochs: must be >= 1, got {args.epochs}")
     if not args.data.is_dir() or not any(args.data.glob("*.npz")):
-        return _usage_error(f"--data {args.data}: not a directory of npz recordings (python -m gesture.data.tokenize)")
+        return _usage_error(f"--data {args.data}: not a directory of npz recordings (ecas tokenize)")
     args.out.mkdir(parents=True, exist_ok=True)
     try:
         train(file_cfg, args.data, args.out, args.codecs, args.epochs, progress=not args.no_progress)
@@ -224,3 +224,7 @@ def _usage_error(message: str) -> int:
     """A user mistake: one line, exit code 2."""
     print(f"error: {message}", file=sys.stderr)
     return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -13,10 +13,10 @@ bfloat16). Callers add the product to a float32 residual or bias, which promotes
 
 int8 is symmetric per output row (scale = max |row| / 127) with bfloat16 activations; both of its kernels use the
 same quantized values, so they agree to bfloat16 rounding. Matrices whose rows are not a multiple of 16 inputs
-(which the int8 kernel gets wrong) are stored in the bfloat16 form instead, on every machine. A fast kernel is used only after a probe has run it
-once in this process on a small matrix and found it agrees with float32 (the probe's answer is cached).
-`ECAS_PORTABLE_KERNELS=1` in the environment, or `portable_kernels(True)`, forces the portable kernels, so a
-machine that has the fast ones also runs what every other machine runs.
+(which the int8 kernel gets wrong) are stored in the bfloat16 form instead, on every machine. A fast kernel is used
+only after a probe has run it once in this process on a small matrix and found it agrees with float32 (the probe's
+answer is cached). `ECAS_PORTABLE_KERNELS=1` in the environment, or `portable_kernels(True)`, forces the portable
+kernels, so a machine that has the fast ones also runs what every other machine runs.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""Loading the official MIBURI release (MIBURI-FACTS sections 4 and 5) into our runtime.
+"""Loading the official MIBURI release (docs/reference_facts.md §4, §5) into our runtime.
 
-- `python -m gesture.convert_miburi --experiment-dir DIR [--codec-dir DIR] --out OUT`: the converter
+- `ecas convert-miburi --experiment-dir DIR [--codec-dir DIR] --out OUT`: the converter
   (`gesture.release.convert.convert_release`, `release_gesture_config(out, speaker)`).
 - `source`: reading release files (prefix strip, bf16 -> fp32, config.yaml, speaker map, idle slices); `ReleaseError`.
 - `codecs`, `glm`: sizes from shapes and config, strict key/shape matching (`keys.match_keys`), checks.

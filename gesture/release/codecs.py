@@ -1,4 +1,4 @@
-"""The three release codecs -> our `GestureCodec`s (MIBURI-FACTS sections 2 and 4).
+"""The three release codecs -> our `GestureCodec`s (docs/reference_facts.md §2, §4).
 
 Our codec keeps the reference's parameter names and weight-norm storage (`weight_g`, `weight_v`), so the
 tensors load unchanged; what the converter adds is: finding which file is which region (by its input

@@ -1,6 +1,6 @@
-"""Convert the official MIBURI release (MIBURI-FACTS sections 4 and 5) into our checkpoints.
+"""Convert the official MIBURI release (docs/reference_facts.md §4, §5) into our checkpoints.
 
-    python -m gesture.convert_miburi --experiment-dir models/miburi/goodspk --codec-dir models/miburi/codecs \
+    ecas convert-miburi --experiment-dir models/miburi/goodspk --codec-dir models/miburi/codecs \
         --out checkpoints/miburi-release [--character wayne]
 
 Reads the experiment's `config.yaml`, `speaker_id_to_index.json`, `tokens_idle_slices/` and its GLM
@@ -38,7 +38,7 @@ from ecas.core.timing import STEP_SAMPLES
 from gesture.body.regions import REGION_DIMS
 from gesture.codec.checkpoint import save_codec
 from gesture.codec.config import CodecFileConfig
-from gesture.config import GestureConfig, IdleGateConfig
+from gesture.config import GestureConfig
 from gesture.lm.checkpoint import save_lm
 from gesture.release.codecs import (
     FIRST_CONV,
@@ -221,7 +221,7 @@ def release_gesture_config(out: Path, speaker: int, **overrides) -> GestureConfi
         lm_checkpoint=out / LM_DIR,
         codec_checkpoints=out / CODECS_DIR,
         speaker=speaker,
-        idle=IdleGateConfig(enabled=True, slices_dir=out / IDLE_DIR),
+        layers=({"idle": {"slices_dir": out / IDLE_DIR}},),
         **overrides,
     )
 
@@ -249,7 +249,9 @@ def run_streaming_check(out: Path, speaker: int) -> float:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="ecas convert-miburi", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument(
         "--experiment-dir",
         type=Path,
@@ -313,3 +315,7 @@ def _print_summary(out: Path, report: dict) -> None:
             "run it with: python launch.py --mic --config ecas/configs/miburi-release.yaml "
             f"--set gesture.speaker={speaker}"
         )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

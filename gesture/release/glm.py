@@ -1,4 +1,4 @@
-"""The release gesture language model -> our `GestureLM` (MIBURI-FACTS sections 3, 4 and 9).
+"""The release gesture language model -> our `GestureLM` (docs/reference_facts.md §3, §4, §7).
 
 Our model keeps the reference's parameter names, so the tensors load unchanged once the `module.`/`m.`
 prefix is stripped and bf16 is cast to fp32. Sizes come from the shapes (width, card, code size, speakers,
@@ -101,8 +101,9 @@ def read_glm_layout(source: SourceCheckpoint, config: ExperimentConfig, region_l
     if face_va:
         reason = "face-logit voice-activity head (training-only auxiliary), dropped"
         ignored = {k: reason for k in source.tensors if k.startswith(("vad_face_proj.", "vad_predictor."))}
+    depth_copies = f"depth_transformer.layers.*.cross_attns.*.{{key,val}}_projs.1-{sizes.n_depth - 1}"
     unused = {
-        f"depth_transformer.layers.*.cross_attns.*.{{key,val}}_projs.1-{sizes.n_depth - 1}": "kept; every depth position uses the trained index-0 projections (MIBURI-FACTS section 9)",
+        depth_copies: "kept; every depth position uses the trained index-0 projections (docs/reference_facts.md §7)",
         "gesture_codec_layers.*": "kept; frozen codec codebooks, checked against the codecs",
     }
     return GlmLayout(sizes, spec, ignored, unused)

@@ -1,4 +1,4 @@
-"""Reading the files of an official MIBURI experiment directory (MIBURI-FACTS section 4).
+"""Reading the files of an official MIBURI experiment directory (docs/reference_facts.md §4).
 
 Every problem raises `ReleaseError` with one message naming the file and, where there is one, the key.
 """

@@ -54,7 +54,9 @@ def resolve_character_for_checkpoint(lm_dir: Path, value: str | int) -> int:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description="List the speakers of a converted LM, or resolve --character.")
+    p = argparse.ArgumentParser(
+        prog="ecas speakers", description="List the speakers of a converted LM, or resolve --character."
+    )
     p.add_argument("lm_dir", type=Path, help="an LM checkpoint directory (e.g. checkpoints/miburi-release/lm)")
     p.add_argument("--character", help="speaker name or index")
     args = p.parse_args(argv)

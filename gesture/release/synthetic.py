@@ -1,9 +1,9 @@
 """Random experiment directories in the layout of the official MIBURI release, at any size.
 
-The key names and shapes below are written from MIBURI-FACTS section 4 (and pinned against
-`state_dict_keys/*.tsv` by tests/test_convert_miburi.py at the reference sizes); they are independent
-of our own models, so converting such a directory is a real test of the converter. Used by the tests
-and by `python -m gesture.release.synthetic OUT [--full-size]` (a full-size random release to time the
+The key names and shapes below follow the release's checkpoint format (docs/reference_facts.md §4) and are
+checked against the reference's own key lists by tests/test_convert_miburi.py where those lists are present; they
+are independent of our own models, so converting such a directory is a real test of the converter. Used by the
+tests and by `python -m gesture.release.synthetic OUT [--full-size]` (a full-size random release to time the
 converter and the runtime on).
 
     root/
@@ -27,35 +27,42 @@ import yaml
 from safetensors.torch import save_file
 
 from ecas.core.body import REGIONS
+from ecas.core.spec import MOSHI_SPEC
 from gesture.body.regions import REGION_DIMS
+from gesture.codec.config import CodecConfig
+from gesture.lm.config import LMConfig
 
 Layout = dict[str, tuple[int, ...]]
 
 
+_CODEC = CodecConfig()  # our configs' defaults are the reference's sizes
+_LM = LMConfig()
+
+
 @dataclass(frozen=True)
 class ReferenceSizes:
-    """Every size of a release; the defaults are the reference's."""
+    """Every size of a release; the defaults are the reference's, read from our own configs' defaults."""
 
-    latent: int = 256
-    n_filters: int = 256
-    residual_layers: int = 2
-    codec_ffn: int = 2048
-    codec_layers: int = 8  # upper/lower; face uses half (as `transformer_layers // 2`)
-    codec_heads: int = 4
-    n_q: dict[str, int] = field(default_factory=lambda: {"upper": 8, "lower": 8, "face": 4})
-    card: int = 2048
-    code_dim: int = 128
-    d: int = 256
-    temporal_layers: int = 4
-    temporal_heads: int = 2
-    depth_layers: int = 2
-    depth_heads: int = 1
-    ffn_hidden: int = 672
-    n_speakers: int = 101
-    text_vocab: int = 32001
-    audio_card: int = 2049
-    embed_dim: int = 4096
-    n_audio: int = 8
+    latent: int = _CODEC.latent_dim
+    n_filters: int = _CODEC.n_filters
+    residual_layers: int = _CODEC.residual_layers
+    codec_ffn: int = _CODEC.dim_feedforward
+    codec_layers: int = _CODEC.regions["upper"].num_layers  # upper/lower; face uses half (`transformer_layers // 2`)
+    codec_heads: int = _CODEC.regions["upper"].num_heads
+    n_q: dict[str, int] = field(default_factory=lambda: {r: _CODEC.regions[r].n_q for r in REGIONS})
+    card: int = _CODEC.codebook_size
+    code_dim: int = _CODEC.codebook_dim
+    d: int = _LM.d_model
+    temporal_layers: int = _LM.temporal_layers
+    temporal_heads: int = _LM.temporal_heads
+    depth_layers: int = _LM.depth_layers
+    depth_heads: int = _LM.depth_heads
+    ffn_hidden: int = _LM.ffn_hidden
+    n_speakers: int = _LM.n_speakers
+    text_vocab: int = MOSHI_SPEC.text_vocab
+    audio_card: int = MOSHI_SPEC.audio_card
+    embed_dim: int = MOSHI_SPEC.embed_dim
+    n_audio: int = MOSHI_SPEC.n_audio_codebooks
 
     @property
     def n_levels(self) -> int:
@@ -324,7 +331,9 @@ def write_experiment(
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description="Write a random release in the official MIBURI layout.")
+    p = argparse.ArgumentParser(
+        prog="ecas fake-release", description="Write a random release in the official MIBURI layout."
+    )
     p.add_argument("out", type=Path)
     p.add_argument("--face-va", action="store_true", help="include the optional vad_face_proj head")
     p.add_argument("--seed", type=int, default=0)

@@ -21,11 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter1d, minimum_filter1d
-from scipy.special import ndtr
 
-from ecas.core.body import COLLARS, ELBOWS, NUM_JOINTS, WRISTS
+from ecas.core.body import COLLARS, ELBOWS, NECK_HEAD, NUM_JOINTS, PELVIS, SHOULDERS, SPINE, WRISTS
 from gesture.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rotation_about_y
 from gesture.body.skeleton import Skeleton, forward_kinematics
+from gesture.layers.reflex import PostureReflexes
+from gesture.layers.signal import log_normal_gate
 from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
 from gesture.synth.config import LAYERED_MICRO_JOINTS, SynthConfig
 from gesture.synth.conversation import AGENT, MIN_PAUSE_S, USER, Conversation, activity_frames
@@ -34,7 +35,6 @@ from gesture.synth.gestures import ArmTracks, plan_arms
 from gesture.synth.hands import blend_hands
 from gesture.synth.ik import TwoBoneChain
 from gesture.synth.posture import Posture, highest_pelvis, plan_posture
-from gesture.synth.reflex import PostureReflexes
 from gesture.synth.tracks import KeyTrack, add_bump, lowpass_noise, smooth_noise
 
 LISTENING_ENERGY = 0.55  # relative liveliness while listening (1 while speaking)
@@ -44,27 +44,27 @@ MICRO_ENVELOPE_SMOOTH_S = 0.3
 MICRO_GATE_LOG_STD = 0.7  # micro-motion comes and goes: its size is log-normal in time, per body part ...
 MICRO_GATE_HZ = 0.4  # ... changing at about this rate (holds of a second or two, bursts between them) ...
 MICRO_GATE_MAX = 1.5  # ... and capped (the real clip's fastest joint turns 0.40 rad per frame at 25 fps)
-# Each elbow has its own, burstier gate (its log's std): with the arms' 0.7, the synthetic agent on the real clip's
-# speech held its elbows still (< 0.2 rad/s) in 0.73x the real speaker's share of frames (median of 8 seeds, 0.49x at
-# worst); with 0.85, in 1.04x (0.56x-2.55x), but partly because arms reaching past their length were pinned straight.
-# With ARM_SOFT_REACH they bend and move a little there: 0.85 gave 0.70x (0.41x-1.49x), 1.05 (elbows refitted) 0.93x
-# (0.43x-1.69x; seeds 0-2 0.92x, 0.70x, 0.88x), at 1.00x his median elbow speed (gate scaled to the same RMS).
+# The elbows and the wrists each have their own, burstier gate (the std of its log), scaled to the same RMS so the
+# fitted sizes keep their meaning: a real speaker's forearms and hands hold still between bursts more often than his
+# other joints do, and with the arms' gate they held still too rarely (docs/quality_history.md, "Synthetic agent").
 ELBOW_GATE_LOG_STD = 1.05
-# The wrists too: with the arms' gate, the synthetic agent on the real clip's speech held its wrists still in 0.78x the
-# speaker's share of frames (median of 8 seeds), and the agent, whose runtime layer adds this motion to decoded
-# wrists, in 0.52-0.63x on three of five seeds.
 WRIST_GATE_LOG_STD = 0.85
 OWN_GATES = ((ELBOWS, ELBOW_GATE_LOG_STD), (WRISTS, WRIST_GATE_LOG_STD))  # joints with their own gates
 MIN_FOREARM_FORWARD = 0.1  # forward component of the forearm's direction (the real clip: >= 0.14 in 99% of frames)
-ELBOW_SIDES = {18: 1.0, 19: -1.0}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
-MICRO_PARTS = ((0, 3, 6, 9, 12, 15), (13, 16, 18, 20), (14, 17, 19, 21))  # pelvis, torso + head; left arm; right arm
+ELBOW_SIDES = {
+    ELBOWS[0]: 1.0,
+    ELBOWS[1]: -1.0,
+}  # elbow joint -> the sign of its forearm's rest direction (+x left, -x right)
+MICRO_PARTS = (  # pelvis, torso + head; left arm; right arm
+    (PELVIS, *SPINE, *NECK_HEAD),
+    *((COLLARS[side], SHOULDERS[side], ELBOWS[side], WRISTS[side]) for side in (0, 1)),
+)
 ROOT_MICRO_MAX_RAD = 0.45  # the pelvis's micro-motion turns it at most about this far (soft limit, tanh): over planted
 # feet a larger turn is a step, not a sway (the fitted noise's tail otherwise reaches ~1 rad)
 NECK_SHARE = 0.4  # of the head offset on the neck joint; the rest on the head joint
 ARM_MIN_FLEX_RAD = 0.2  # the elbows never lock straight (real: the forearm points >= 0.135 forwards in 99 % of frames)
 # Wrist targets near or past the arm's full length are eased to at most this share of it (knee, cap; see
-# gesture.synth.ik): before, the arm snapped straight (the elbow 0.46 rad in 3 frames, the shoulder 7.7 rad/s in one),
-# and the shoulders' angular velocity had 3-26x the real speaker's power above 4 Hz on his clip's speech.
+# gesture.synth.ik): a target at full reach snaps the arm straight, a jerk of the elbow and then the shoulder.
 ARM_SOFT_REACH = (0.93, 0.99)
 ARM_MAX_FLEX_STEP_RAD = 0.25  # per frame (real: the fastest joint turns 0.40 rad per frame), see gesture.synth.ik
 # The arm joints' range of motion (rad, the local rotation's angle): the calibrated micro-motion (std up to 0.59 rad per
@@ -78,8 +78,8 @@ JOINT_SOFT_LIMITS_RAD = {
 }  # joint -> (knee, cap)
 # The collars take part of each upper arm's swing (as a real shoulder girdle does): the collar turns by this share of
 # the upper arm's rotation (chest frame) away from its median direction, smoothed over COLLAR_SMOOTH_S. The arm IK
-# then re-solves, so the hands' targets stay and the shoulder joints turn less. Without it, on the real clip's speech,
-# the shoulders spread 1.6x as wide as the speaker's (pose diversity) and the collars hardly moved.
+# then re-solves, so the hands' targets stay and the shoulder joints turn less (without it the shoulders spread far
+# wider than a real speaker's and the collars hardly move).
 COLLAR_SHARE = 0.5
 COLLAR_SMOOTH_S = 0.2
 POLE_OUT, POLE_DOWN = (
@@ -219,17 +219,10 @@ def plan_face(
     )
 
 
-def gate_rms(log_std: np.ndarray | float, cap: float) -> np.ndarray:
-    """The RMS of min(exp(s Z - s^2), cap) for a standard normal Z and log std s."""
-    z_cap = (np.log(cap) + np.square(log_std)) / log_std
-    return np.sqrt(ndtr(z_cap - 2 * np.asarray(log_std)) + cap**2 * ndtr(-z_cap))
-
-
 def micro_gate(noise: np.ndarray, log_std: float = MICRO_GATE_LOG_STD) -> np.ndarray:
     """Smooth unit-variance noise -> the gate: log-normal, capped, and scaled to the RMS of the gate of
     ``MICRO_GATE_LOG_STD`` (so the fitted stds of calibration.json keep their size under a burstier gate)."""
-    gain = gate_rms(MICRO_GATE_LOG_STD, MICRO_GATE_MAX) / gate_rms(log_std, MICRO_GATE_MAX)
-    return np.minimum(np.exp(log_std * noise - log_std**2), MICRO_GATE_MAX) * gain
+    return log_normal_gate(noise, log_std, MICRO_GATE_MAX, MICRO_GATE_LOG_STD)
 
 
 def micro_motion_scale(speaking: np.ndarray, env: np.ndarray, fps: float) -> np.ndarray:
@@ -317,10 +310,11 @@ class BodySolver:
         n = len(head)
         local = np.broadcast_to(np.eye(3), (n, NUM_JOINTS, 3, 3)).copy()
         local[:, 0] = _aa(posture.root_offset_aa) @ _aa(self.base[0])
-        for k, j in enumerate((3, 6, 9)):
+        for k, j in enumerate(SPINE):
             local[:, j] = _aa(posture.spine_offset_aa[:, k]) @ _aa(self.base[j])
-        local[:, 12] = _aa(NECK_SHARE * head) @ _aa(self.base[12])
-        local[:, 15] = _aa((1 - NECK_SHARE) * head) @ _aa(self.base[15])
+        neck, head_joint = NECK_HEAD
+        local[:, neck] = _aa(NECK_SHARE * head) @ _aa(self.base[neck])
+        local[:, head_joint] = _aa((1 - NECK_SHARE) * head) @ _aa(self.base[head_joint])
         raise_amount = np.clip((arms.wrist[..., 1] - rest_wrist_y) / 0.4, 0.0, 1.0)  # (T, 2)
         for s, (side, sign) in enumerate((("left", 1.0), ("right", -1.0))):
             lift = posture.collar_lift + 0.1 * raise_amount[:, s]
@@ -418,7 +412,7 @@ def synthesize_agent_motion(
     local = solver.solve(posture, arms, head, rest_wrist_y=float(arms.wrist[0, 0, 1]))
     gesture_local = (
         local.copy()
-    )  # what the codecs model: the agent's runtime layer adds the rest (gesture.micro_motion)
+    )  # what the codecs model: the agent's runtime layer adds the rest (gesture.layers.micro_motion)
     for j, offset in offsets.items():
         sign = ELBOW_SIDES.get(j)
         scale = 1.0 if sign is None else forearm_forward_scale(local[:, j], offset, sign)[:, None]

@@ -1,6 +1,6 @@
 """Synthetic dyadic conversations in the BEAT2 layout: training data for the default agent.
 
-    python -m gesture.data.synthetic --out data/synthetic --sessions 40 --minutes 3 --seed 0 [--jobs 2]
+    ecas synthetic --out data/synthetic --sessions 40 --minutes 3 --seed 0 [--jobs 2]
 
 Each session is two espeak-ng voices (the agent and the user) taking turns, with overlaps, backchannels
 and barge-ins (gesture/synth/conversation.py), and the agent's procedural whole-body motion
@@ -141,12 +141,17 @@ def _make_session(job: tuple) -> str:
     return tid
 
 
+SHARED_WITH_LAYERS = ("signal.py", "reflex.py")  # gesture/layers/ files the generator imports
+
+
 def generator_fingerprint() -> str:
-    """SHA-256 of the generator's code and calibration (gesture/synth/*.py and calibration.json): sessions made by
-    another generator are other data."""
+    """SHA-256 of the generator's code and calibration (gesture/synth/*.py, calibration.json, and the signal
+    primitives and posture reflexes it shares with the runtime layers): sessions made by another generator are other
+    data."""
     digest = hashlib.sha256()
     synth = Path(__file__).resolve().parent
-    for path in sorted(synth.glob("*.py")) + [synth / "calibration.json"]:
+    shared = [synth.parent / "layers" / name for name in SHARED_WITH_LAYERS]
+    for path in sorted(synth.glob("*.py")) + [synth / "calibration.json"] + shared:
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
     return digest.hexdigest()
 
@@ -193,7 +198,7 @@ def generate_dataset(
 
 def main(argv: list[str] | None = None) -> int:
     limit_threads()
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="ecas synthetic", description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="output directory (BEAT2 layout)")
     parser.add_argument("--sessions", type=int, default=40)
     parser.add_argument("--minutes", type=float, default=SESSION_MINUTES, help="length of each session")
@@ -217,3 +222,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"{args.out}: {len(ids)} sessions of {args.minutes:g} min")
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ecas.core.body import HAND_JOINTS, WRISTS
+from ecas.core.body import COLLARS, HAND_JOINTS, JAW_JOINT, NECK_HEAD, PELVIS, SPINE, WRISTS
 from gesture.body.rotation import (
     axis_angle_to_matrix,
     axis_angle_to_quaternion,
@@ -39,8 +39,8 @@ from gesture.body.rotation import (
 from gesture.body.skeleton import Skeleton, forward_kinematics_np
 
 CALIBRATION_JSON = Path(__file__).with_name("calibration.json")
-BASE_JOINTS = (0, 3, 6, 9, 12, 13, 14, 15, 22)  # root, spines, neck, collars, head, jaw
-CHEST_JOINT = 9
+BASE_JOINTS = tuple(sorted((PELVIS, *SPINE, *NECK_HEAD, *COLLARS, JAW_JOINT)))  # (0, 3, 6, 9, 12, 13, 14, 15, 22)
+CHEST_JOINT = SPINE[-1]
 PERCENTILES = (5, 50, 95)
 
 
@@ -135,7 +135,7 @@ def load_calibration() -> Calibration:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description="Recompute calibration.json from a BEAT2 npz.")
+    parser = argparse.ArgumentParser(prog="ecas calibrate", description="Recompute calibration.json from a BEAT2 npz.")
     parser.add_argument("npz", help="a BEAT2 SMPL-X npz, e.g. ../shared/data/beat2/2_scott_0_1_1.npz")
     parser.add_argument("--out", default=str(CALIBRATION_JSON))
     args = parser.parse_args(argv)

@@ -7,13 +7,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ecas.core.body import COLLARS, NECK_HEAD, SPINE, WRISTS
 from ecas.core.config import ConfigError, build_dataclass, load_yaml
 from ecas.core.timing import MOTION_FPS
 
 GESTURE_FAMILIES = ("beat", "presentation", "deictic", "size", "adaptor")
-# The joints whose micro-motion the agent adds at run time (gesture.micro_motion) rather than through its codecs: the
-# spine, neck, collars, head and wrists. The data's ``gesture_poses`` leave it out; the codecs and the LM learn those.
-LAYERED_MICRO_JOINTS = (3, 6, 9, 12, 13, 14, 15, 20, 21)
+# The joints whose micro-motion the agent adds at run time (gesture.layers.micro_motion) rather than through its
+# codecs: the spine, neck, collars, head and wrists. The data's ``gesture_poses`` leave it out; the codecs and the
+# LM learn those.
+LAYERED_MICRO_JOINTS = tuple(sorted(SPINE + NECK_HEAD + COLLARS + WRISTS))  # (3, 6, 9, 12, 13, 14, 15, 20, 21)
 
 
 @dataclass(frozen=True)

@@ -7,9 +7,10 @@ and a pole direction (where the mid joint should point), we solve:
 1. the hinge angle theta with |b + R_h(theta) c| = |target - root| (clamped to a flexion range); with
    ``soft_reach`` the distance is first eased towards a share of the chain's full length (near full extension the
    flexion changes as 1 / sin(flex) with the distance, so a target passing the reach would snap the mid joint
-   straight in a frame or two, and the root with it); with ``max_flex_step_rad`` it changes at most that much per frame: near full extension the angle's derivative
-   against the distance grows as 1 / sin(flex), so a target moving 4 cm per frame out to the chain's reach would
-   otherwise swing the mid joint ~0.5 rad in one frame (the end then lags its target for a frame or two);
+   straight in a frame or two, and the root with it); with ``max_flex_step_rad`` it changes at most that much per
+   frame: near full extension the angle's derivative against the distance grows as 1 / sin(flex), so a target
+   moving 4 cm per frame out to the chain's reach would otherwise swing the mid joint ~0.5 rad in one frame (the
+   end then lags its target for a frame or two);
 2. the root's world rotation mapping (b + R_h(theta) c) onto the target direction with b on the pole side.
 Both rest vectors are used exactly, so the end lands on the target whenever it is reachable.
 """

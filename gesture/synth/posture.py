@@ -47,9 +47,8 @@ KNEE_DIP_M = 0.035  # the pelvis lowers this much with the weight fully on one f
 # over the feet (low-passed noise) gives its motion.
 PELVIS_SWAY_M = (0.045, 0.045)  # sideways, fore-aft std while speaking (0.6 + 0.4 x energy of it)
 PELVIS_SWAY_HZ = 0.4
-# The sway's filter order: with the micro-motion's 2nd order its acceleration is flat above the cutoff, and the pelvis
-# accelerated 2.5-3x the real speaker's (median; his 0.22 / 0.25 m/s^2 sideways / fore-aft) on his clip's speech; with
-# the 4th, 0.19 / 0.14 (p90 0.69 / 0.68, his 0.67 / 0.74), and his head's 2.2x -> 1.5-1.6x.
+# The sway's filter order: a 2nd-order low-pass's acceleration stays flat above its cutoff, so the pelvis (and the
+# head above it) accelerated far harder than a real speaker's; a 4th-order one falls off (docs/quality_history.md).
 PELVIS_SWAY_ORDER = 4
 LEG_REACH_SHARE = 0.97  # hip to ankle at most this share of the leg's length: the knees never lock
 

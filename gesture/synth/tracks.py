@@ -8,15 +8,20 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
-from scipy.signal import butter, sosfilt
+from scipy.signal import sosfilt
+
+from gesture.layers.signal import (
+    LOWPASS_ORDER,
+    NOISE_TRUNCATE_SIGMAS,
+    bump,
+    lowpass_gain,
+    lowpass_sos,
+    lowpass_warmup_frames,
+    minimum_jerk,
+    noise_sigma_frames,
+)
 
 MIN_KEY_SPACING_S = 0.04
-
-
-def minimum_jerk(s: np.ndarray) -> np.ndarray:
-    """0 -> 1 with zero first and second derivatives at both ends; s in [0, 1]."""
-    s = np.clip(s, 0.0, 1.0)
-    return s**3 * (10 - 15 * s + 6 * s**2)
 
 
 class KeyTrack:
@@ -62,14 +67,6 @@ class KeyTrack:
         return values[i] + (values[j] - values[i]) * w
 
 
-NOISE_TRUNCATE_SIGMAS = 4.0  # scipy's gaussian_filter1d default: the kernel ends this many sigmas out
-
-
-def noise_sigma_frames(cutoff_hz: float, fps: float) -> float:
-    """The Gaussian smoothing (sigma, in frames) of noise with ``cutoff_hz``."""
-    return fps / (2 * np.pi * cutoff_hz)
-
-
 def smooth_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1) -> np.ndarray:
     """(n_frames, dim) Gaussian-filtered white noise with unit standard deviation per column."""
     sigma = noise_sigma_frames(cutoff_hz, fps)
@@ -80,27 +77,6 @@ def smooth_noise(rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz:
     return x / np.maximum(x.std(0, keepdims=True), 1e-9)
 
 
-LOWPASS_ORDER = 2  # real joint rotations fall off as a 2nd-order low-pass above their corner, not as a Gaussian
-LOWPASS_WARMUP_TAUS = 12  # white noise run through the filter first, in time constants: the output starts stationary
-
-
-def lowpass_sos(cutoff_hz: float, fps: float, order: int = LOWPASS_ORDER) -> np.ndarray:
-    """The micro-motion noise filter: a Butterworth low-pass of ``order`` at ``cutoff_hz``, as second-order
-    sections."""
-    return butter(order, cutoff_hz, fs=fps, output="sos")
-
-
-def lowpass_gain(sos: np.ndarray, fps: float, cutoff_hz: float) -> float:
-    """The filter's output std for unit white noise (its impulse response's energy, square-rooted)."""
-    impulse = np.zeros(lowpass_warmup_frames(cutoff_hz, fps))
-    impulse[0] = 1.0
-    return float(np.sqrt(np.square(sosfilt(sos, impulse)).sum()))
-
-
-def lowpass_warmup_frames(cutoff_hz: float, fps: float) -> int:
-    return int(np.ceil(LOWPASS_WARMUP_TAUS * fps / (2 * np.pi * cutoff_hz)))
-
-
 def lowpass_noise(
     rng: np.random.Generator, n_frames: int, fps: float, cutoff_hz: float, dim: int = 1, order: int = LOWPASS_ORDER
 ) -> np.ndarray:
@@ -108,13 +84,6 @@ def lowpass_noise(
     sos, warmup = lowpass_sos(cutoff_hz, fps, order), lowpass_warmup_frames(cutoff_hz, fps)
     out = sosfilt(sos, rng.standard_normal((warmup + n_frames, dim)), axis=0)[warmup:]
     return out / lowpass_gain(sos, fps, cutoff_hz)
-
-
-def bump(times: np.ndarray, centre_s: float, rise_s: float, hold_s: float, fall_s: float) -> np.ndarray:
-    """(T,) 0 -> 1 -> 0: minimum-jerk rise ending at ``centre_s``, hold, then a minimum-jerk fall."""
-    up = minimum_jerk((times - (centre_s - rise_s)) / max(rise_s, 1e-6))
-    down = 1.0 - minimum_jerk((times - (centre_s + hold_s)) / max(fall_s, 1e-6))
-    return np.minimum(up, down)
 
 
 def add_bump(out: np.ndarray, fps: float, centre_s: float, rise_s: float, hold_s: float, fall_s: float, amount) -> None:

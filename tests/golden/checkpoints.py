@@ -1,5 +1,5 @@
-"""What the shipped checkpoints (ecas/checkpoints/gesture_lm, ecas/checkpoints/codecs) produce for a seeded input, kept in
-tests/golden/checkpoints.npz and checked by tests/test_golden_checkpoints.py.
+"""What the shipped checkpoints (ecas/checkpoints/gesture_lm, ecas/checkpoints/codecs) produce for a seeded input,
+kept in tests/golden/checkpoints.npz and checked by tests/test_golden_checkpoints.py.
 
 Regenerate it after replacing the checkpoints (from the repository root):
 

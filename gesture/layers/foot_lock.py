@@ -1,9 +1,7 @@
 """Foot locking on the decoded legs (not in the reference): a planted foot stays where it was planted.
 
-Why: the lower codec decodes foot contacts with the pose (the reference's lower-body features carry them), and on a
-validation session the decoded ankles were in contact in 94-95 % of frames yet slid there at a median 5-6 cm/s,
-while the ground truth's planted ankles do not move at all (its legs are solved by IK onto planted feet) and the
-real speaker's move at a median 1.1 cm/s (the README's realism section).
+The lower codec decodes foot contacts with the pose (the reference's lower-body features carry them), but the decoded
+ankles slide while those contacts say they are planted (measurements: docs/quality_history.md, "Runtime layers").
 
 Per leg and frame: when the decoded ankle contact rises above CONTACT_ON, the ankle's world position becomes the
 leg's anchor. While it lasts, the decoded leg is changed as little as puts the ankle back on the anchor: the knee
@@ -12,35 +10,40 @@ keeping its twist, and the ankle keeps its decoded world orientation. The lock l
 decoded ankle has moved from the anchor by `release_m` while the agent is silent, `release_speaking_m` while it
 speaks (a step). The leg's local rotations turn from the decoded ones to the solved ones over `blend_s` (a foot
 lands) and back over `step_s` (the step to where the decoded foot is), so locking and letting go never jump. Only
-hips, knees and ankles change.
-
-The decoded contacts stay on through most of the data's steps (the decoded feet slide through them instead), so the
-release distances and `step_s` set the pacing. They were chosen on four validation sessions (synthetic seed 1, 120 s
-each, never the real clip) so the agent's feet match the ground truth's: release 0.2 m, blend 0.2 s and step 0.5 s
-gave 11.0 steps a minute per foot (ground truth 11.6), ankles planted in 0.86 of the frames (0.87) and an ankle speed
-p90 of 0.11 m/s (0.12); a release of 0.1 m stepped 21.6 times a minute, and a step as quick as the landing (0.2 s)
-left the p90 at 0.03 m/s. But with one release distance the agent stepped about as often listening as speaking
-(10.7 and 11.4 times a minute, sampling seed 0), where the ground truth, whose holds between bouts of steps are
-longer while it listens, steps 10.5 and 13.2 times; releasing at 0.18 m while speaking gives 10.2 and 13.7
-(0.165 m: 9.4 and 15.6, the steps that a silent stretch had prepared coming at the first words), planted 0.86,
-p90 0.13 m/s (ground truth 0.125).
+hips, knees and ankles change. The decoded contacts stay on through most steps, so the release distances and
+`step_s` set how often the feet step.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ecas.core.body import CONTACT_JOINTS, NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.body.skeleton import Skeleton
-from gesture.micro_motion import SpeakingTrack, frame_rms
+from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
+from gesture.layers.micro_motion import SpeakingTrack
+from gesture.layers.registry import register
 
 CONTACT_ON = 0.5  # a decoded contact above this plants the ankle (the codec's contacts are 0 or 1 in its data)
 LEGS = ((1, 4, 7), (2, 5, 8))  # (hip, knee, ankle): left, right
 PELVIS = 0
-KNEE_AXIS = np.array([1.0, 0.0, 0.0])  # the knee flexes about its local x (as gesture.synth's leg chains)
+KNEE_AXIS = np.array([1.0, 0.0, 0.0])  # the knee flexes about its local x (as the synthetic data's leg chains)
+
+
+@dataclass(frozen=True)
+class FootLockOptions:
+    release_m: float = 0.2  # a lock lets go when the decoded ankle is this far from its anchor, the agent silent ...
+    release_speaking_m: float = 0.18  # ... and this far while it speaks
+    blend_s: float = 0.2  # a landing foot's leg turns from decoded to locked over this long
+    step_s: float = 0.5  # a released leg turns back to decoded over this long (the step)
+
+    def __post_init__(self) -> None:
+        for name in ("release_m", "release_speaking_m", "blend_s", "step_s"):
+            if getattr(self, name) <= 0:
+                raise LayerOptionError(f"{name}: must be > 0, got {getattr(self, name)}")
 
 
 @dataclass
@@ -83,10 +86,11 @@ def _relative_blend(decoded: np.ndarray, solved: np.ndarray, weight: np.ndarray)
 
 
 class FootLock:
-    """`step(poses (F, 55, 3), trans (F, 3), contacts (F, 4), agent_pcm)` -> poses with planted feet held still;
-    `reset()` per session. `contacts` are the decoded contacts of CONTACT_JOINTS (ankles, then feet). A lock lets
-    go at `release_m` while the agent is silent and at `release_speaking_m` while it speaks (its speaking track,
-    gesture.micro_motion.SpeakingTrack, between the two)."""
+    """A motion layer: planted feet held still (`apply` on the arrays); `reset()` per session. A lock lets go at
+    `release_m` while the agent is silent and at `release_speaking_m` while it speaks (its speaking track,
+    `SpeakingTrack`, between the two)."""
+
+    stage = "motion"
 
     def __init__(
         self,
@@ -113,10 +117,10 @@ class FootLock:
         self.locks = [LegLock() for _ in LEGS]
         self.speaking.reset()
 
-    def _release_m(self, agent_pcm: np.ndarray | None, frames: int) -> np.ndarray:
-        """(frames,) each frame's release distance, from this step's agent audio (None: silent)."""
-        speaking = np.array([self.speaking.step(rms) for rms in frame_rms(agent_pcm, frames)])
-        return self.release_m + (self.release_speaking_m - self.release_m) * speaking
+    def _release_m(self, speaking: np.ndarray) -> np.ndarray:
+        """(F,) each frame's release distance, from whether the agent speaks in it (F,) bool."""
+        track = np.array([self.speaking.step(bool(s)) for s in speaking])
+        return self.release_m + (self.release_speaking_m - self.release_m) * track
 
     def _anchor(self, lock: LegLock, ankle: np.ndarray, planted: bool, release_m: float) -> np.ndarray | None:
         """Updates the lock with this frame's decoded ankle position; its anchor while the leg is (partly) solved."""
@@ -160,9 +164,14 @@ class FootLock:
         solved = np.stack([hip_local, knee_local, ankle_local], 1)  # (N, 3, 3, 3)
         return held, _relative_blend(rot[held, 1:], solved, weights[held])
 
-    def step(
-        self, poses: np.ndarray, trans: np.ndarray, contacts: np.ndarray, agent_pcm: np.ndarray | None = None
+    def step(self, motion: Motion, context: StepContext) -> Motion:
+        return replace(motion, poses=self.apply(motion.poses, motion.trans, motion.contacts, context.speaking))
+
+    def apply(
+        self, poses: np.ndarray, trans: np.ndarray, contacts: np.ndarray, speaking: np.ndarray | None = None
     ) -> np.ndarray:
+        """poses (F, 55, 3), trans (F, 3), contacts (F, 4) of CONTACT_JOINTS (ankles, then feet), speaking (F,) bool
+        (None: silent) -> the poses with planted feet held."""
         poses = np.asarray(poses)
         frames = len(poses)
         if (
@@ -176,10 +185,18 @@ class FootLock:
             )
         out = poses.copy()
         trans, contacts = np.asarray(trans, np.float64), np.asarray(contacts)
-        release_m = self._release_m(agent_pcm, frames)
+        release_m = self._release_m(np.zeros(frames, bool) if speaking is None else speaking)
         for side, leg in enumerate(LEGS):
             rot = axis_angle_to_matrix_np(poses[:, [PELVIS, *leg]].astype(np.float64))  # (F, 4, 3, 3)
             held, solved = self._leg(side, rot, trans, contacts[:, self.contact_index[side]] > CONTACT_ON, release_m)
             if held.any():
                 out[np.ix_(held, leg)] = matrix_to_axis_angle_np(solved).astype(poses.dtype)
         return out
+
+
+@register("foot_lock", FootLockOptions)
+def build(options: FootLockOptions, env: LayerEnv) -> FootLock:
+    """On the built-in skeleton, the training data's."""
+    return FootLock(
+        Skeleton.default(), env.fps, options.release_m, options.release_speaking_m, options.blend_s, options.step_s
+    )

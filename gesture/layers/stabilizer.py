@@ -1,16 +1,12 @@
 """Causal speed-adaptive smoothing of the arms' output rotations (a One Euro filter on rotations; not in the reference).
 
-Why: the decoded arms never hold still. On the real BEAT2 clip's speech, the agent's elbows were still (< 0.2 rad/s)
-in 1.7 % of frames against the real speaker's 6.6 %, and its wrists in 5 % against 10 %, while their median and
-90th-percentile speeds matched his (the README's realism section). The codecs alone lose the same holds: the real
-clip encoded and decoded keeps half of his still elbow frames. A real speaker's arm speed is bursty, with holds
-between strokes; the decoded motion's is not.
+The decoded arms rarely hold still: their speed lacks a real speaker's holds between strokes (measurements:
+docs/quality_history.md, "Runtime layers").
 
 Per joint, the output rotation moves towards the input along the shortest arc by a share ``alpha`` of the remaining
 rotation each frame. ``alpha`` comes from a cutoff that rises with the joint's smoothed angular speed (Casiez,
 Roussel and Vogel, "1 Euro Filter", CHI 2012): slow drift is smoothed hard and comes to rest, fast strokes pass with
-little lag (at 3 rad/s with the default options an elbow's cutoff is 1.2 Hz, a time constant of 0.13 s, a wrist's
-2.9 Hz).
+little lag (at 3 rad/s with the default options an elbow's cutoff is 2.1 Hz, a wrist's 3.8 Hz).
 
 A low-pass alone smooths a steady drift but never stops it: its output moves as fast as its input. So a joint with a
 ``hold_rad`` also holds: once its output has settled within ``settle_share`` of that angle of the input, it stays put
@@ -21,12 +17,43 @@ catch-ups, as a speaker holds a pose and then moves on; a held output is never m
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ecas.core.body import NUM_JOINTS
+from ecas.core.body import ELBOWS, NUM_JOINTS, WRISTS
 from gesture.body.rotation import axis_angle_to_quaternion, quaternion_to_axis_angle
+from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
+from gesture.layers.registry import register
+
+
+@dataclass(frozen=True)
+class StabilizerOptions:
+    joints: tuple[int, ...] = (*ELBOWS, *WRISTS)  # the joints smoothed
+    min_cutoff_hz: tuple[float, ...] = (0.3, 0.3, 2.0, 2.0)  # per joint, the cutoff while it is at rest ...
+    speed_gain_hz: float = 0.6  # ... rising this much per rad/s of its speed
+    speed_cutoff_hz: float = 1.0  # the speed estimate's own smoothing
+    hold_rad: tuple[float, ...] = (0.09, 0.09, 0.08, 0.08)  # per joint, how far the input may leave a held output
+    settle_share: float = 0.25  # a following output settles into a hold within this share of hold_rad
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise LayerOptionError("joints: must name at least one joint")
+        if len(self.min_cutoff_hz) != len(self.joints) or min(self.min_cutoff_hz) <= 0:
+            raise LayerOptionError(
+                f"min_cutoff_hz: need one value > 0 per joint of joints ({len(self.joints)}), "
+                f"got {list(self.min_cutoff_hz)}"
+            )
+        if self.speed_cutoff_hz <= 0:
+            raise LayerOptionError(f"speed_cutoff_hz: must be > 0, got {self.speed_cutoff_hz}")
+        if self.speed_gain_hz < 0:
+            raise LayerOptionError(f"speed_gain_hz: must be >= 0, got {self.speed_gain_hz}")
+        if len(self.hold_rad) != len(self.joints) or min(self.hold_rad) < 0:
+            raise LayerOptionError(
+                f"hold_rad: need one value >= 0 per joint of joints ({len(self.joints)}), got {list(self.hold_rad)}"
+            )
+        if not 0 < self.settle_share < 1:
+            raise LayerOptionError(f"settle_share: must be in (0, 1), got {self.settle_share}")
 
 
 def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -57,12 +84,15 @@ class StabilizerState:
 
 
 class ArmStabilizer:
-    """`step(poses (F, 55, 3))` smooths `joints`' local rotations frame by frame; `reset()` per session.
+    """A motion layer: `joints`' local rotations smoothed frame by frame (`apply` on the poses); `reset()` per
+    session.
 
     `min_cutoff_hz`: the cutoff at rest (one for all joints, or one per joint); `speed_gain_hz`: the cutoff's rise
     per rad/s of speed; `speed_cutoff_hz`: the cutoff of the speed estimate itself; `hold_rad`: how far the input may
     leave a held output (one for all joints, or one per joint; 0: no holds); `settle_share`: the share of `hold_rad`
     within which a following output settles into a hold."""
+
+    stage = "motion"
 
     def __init__(
         self,
@@ -123,7 +153,10 @@ class ArmStabilizer:
         s.rotation = moved / np.linalg.norm(moved, axis=-1, keepdims=True)
         return s.rotation
 
-    def step(self, poses: np.ndarray) -> np.ndarray:
+    def step(self, motion: Motion, context: StepContext) -> Motion:
+        return replace(motion, poses=self.apply(motion.poses))
+
+    def apply(self, poses: np.ndarray) -> np.ndarray:
         """(F, 55, 3) axis-angle -> the same with `joints` smoothed."""
         poses = np.asarray(poses)
         if poses.ndim != 3 or poses.shape[1:] != (NUM_JOINTS, 3):
@@ -133,3 +166,16 @@ class ArmStabilizer:
         out = poses.copy()
         out[:, self.joints] = quaternion_to_axis_angle(smoothed)
         return out
+
+
+@register("stabilizer", StabilizerOptions)
+def build(options: StabilizerOptions, env: LayerEnv) -> ArmStabilizer:
+    return ArmStabilizer(
+        options.joints,
+        env.fps,
+        options.min_cutoff_hz,
+        options.speed_gain_hz,
+        options.speed_cutoff_hz,
+        options.hold_rad,
+        options.settle_share,
+    )

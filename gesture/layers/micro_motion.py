@@ -1,62 +1,39 @@
 """Micro-motion layered on the decoded pose (not in the reference): the small, speech-independent motion of the
 torso, neck, head, collars and wrists that a real speaker never stops making.
 
-Why: the small CPU codecs carry gestures but drop this motion. A linear probe of an upper codec's latent (trained on
-the whole motion)
-explains none of the spine, neck, head and collar rotations (R^2 <= 0.05 on held-out synthetic sessions, against
-0.97 for the fingers) and 13-20 % of the wrists', and neither inverse-variance joint weights, standardised features
-nor warm starts changed that within 4000 steps; so the decoded agent held those joints still 3x as often as the
-real speaker (the README's realism section).
-
-So the synthetic data splits the two: each session's ``gesture_poses`` leave out the micro-motion of these joints
-(gesture.synth.config.LAYERED_MICRO_JOINTS), and the codecs and the LM learn only that gesture layer.
-The layer adds the micro-motion model of the synthetic training data (`gesture.synth`, calibration.json
-``micro_motion``, fitted on the real BEAT2 clip): per joint and axis, a slow and a quick low-passed noise of the
-fitted sizes and cutoffs (calibration.MicroNoise), times a slow log-normal gate per body part, calmer while the
-agent listens, softly limited to 2.5 standard deviations (the wrists' fitted deviations are large: unlimited, rare
-peaks bent them past 130 degrees). Its size follows the agent's own audio as the data's does: 0.45x while silent,
-and 0.75-1.25x with the speech envelope (without that term, the layer on reconstructed validation sessions scored a
-BeatAlign 0.02 above the data's own micro-motion model; with it, the same). It is causal (the data's Butterworth
-filters run one frame at a time; the gates' Gaussian smoothing as a causal FIR over a ring of white noise) and
-seeded per session, and it post-multiplies each joint's local rotation, as the synthetic agent does. Then, as in the
-data, the spine and the neck counter quick turns beneath them (gesture.synth.reflex), so that the chest and the head
-move as steadily in space as the real speaker's.
+The small CPU codecs carry gestures but drop this motion, so the synthetic data splits the two: each session's
+``gesture_poses`` leave out the micro-motion of these joints, and the codecs and the LM learn only that gesture layer.
+This layer adds the data's micro-motion model back (its fitted values: `gesture.layers.fitted`): per joint and axis,
+a slow and a quick low-passed noise of the fitted sizes and cutoffs, times a slow log-normal gate per body part (or
+the joint's own), softly limited to LIMIT_STDS standard deviations. Its size follows the agent's own audio as the
+data's does: calmer while it is silent, livelier with its speech envelope. It is causal (the data's Butterworth
+filters run one frame at a time; the gates' Gaussian smoothing as a causal FIR over a ring of white noise), seeded
+per session, and post-multiplies each joint's local rotation, as the synthetic agent does. Then, as in the data, the
+spine and the neck counter quick turns beneath them (`gesture.layers.reflex`).
 
 Last, an optional slow drift of the neck and head (`HeadDrift`) stands in for the data's planned head motion (nods,
-slow turns), which is in the gesture layer but which the codecs drop (a linear probe explains none of it): without
-it the agent's neck and head had 0.71 of the ground truth's pose diversity on validation sessions and 0.74-0.86 of
-the real speaker's on his speech (seeds 0-9), at their speeds.
-
-A joint's noise can be made slower than fitted (`calibrated_micro_motion`'s `cutoff_hz`; the config's
-`gesture.micro_motion.collar_cutoff_hz` does it for the `COLLARS`). The fit gave the collars 3 Hz because the
-data's planned collars move slowly, but the decoded collars carry quick motion of their own (the codecs' step
-jitter), so on the real clip's speech the fitted noise on top gave them 2.3x the speaker's share of quick motion,
-and, as the noise turns each whole arm, it shook the hands (their paths had 6-9x his power at 4-8 Hz).
+slow turns), which the codecs drop. A joint's noise can be made slower than fitted (`calibrated_micro_motion`'s
+`cutoff_hz`; the `collar_cutoff_hz` option does it for the collars). Measurements behind these choices:
+docs/quality_history.md, "Runtime layers".
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, field
+from dataclasses import replace as replace_fields
 
 import numpy as np
 
-from ecas.core.body import NECK_HEAD
+from ecas.core.body import COLLARS, NECK_HEAD
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
-from gesture.config import IdleGateConfig
-from gesture.synth.agent import (
-    MICRO_ENVELOPE_GAIN,
-    MICRO_ENVELOPE_SMOOTH_S,
-    MICRO_GATE_HZ,
-    MICRO_LISTENING,
-    MICRO_PARTS,
-    OWN_GATES,
-    micro_gate,
-)
-from gesture.synth.calibration import MICRO_FAST_HZ, MicroNoise, load_calibration
-from gesture.synth.reflex import PostureReflexes
-from gesture.synth.tracks import (
+from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
+from gesture.layers.fitted import MicroNoise, micro_fit
+from gesture.layers.reflex import PostureReflexes
+from gesture.layers.registry import register
+from gesture.layers.signal import (
     NOISE_TRUNCATE_SIGMAS,
+    log_normal_gate,
     lowpass_gain,
     lowpass_sos,
     lowpass_warmup_frames,
@@ -65,29 +42,45 @@ from gesture.synth.tracks import (
 
 SPEAKING_SMOOTH_S = 0.32  # the synthetic agent's speaking track is smoothed over about this long
 LIMIT_STDS = 2.5  # each offset is softly limited (tanh) to this many fitted stds per axis: no wrist folds over
-SPEAKING_RMS = IdleGateConfig.l2_threshold / np.sqrt(IdleGateConfig.window_samples)  # its silence as an RMS
-VOICED_RMS = 1e-3  # frames above it count towards the envelope's loud level (gesture.synth.agent.speech_envelope)
+VOICED_RMS = 1e-3  # frames above it count towards the envelope's loud level (as the data's speech envelope)
 LOUD_QUANTILE = 0.95  # the envelope divides by this quantile of the voiced frames' RMS ...
 LOUD_RATE = 0.02  # ... tracked causally: it moves by about this fraction per voiced frame
 HEAD_DRIFT_JOINTS = NECK_HEAD
 HEAD_DRIFT_STREAM = 1  # the drift's random stream, apart from the layer's: the other joints' noise stays the same
 
 
+@dataclass(frozen=True)
+class MicroMotionOptions:
+    # the joints moved (each must have a fitted micro-motion); by default those the data leaves to this layer
+    joints: tuple[int, ...] = field(default_factory=lambda: micro_fit().layered_joints)
+    scale: float = 1.0  # times every fitted standard deviation
+    head_drift_rad: float = 0.0  # the neck's and head's slow drift: its std per axis (0: none) ...
+    head_drift_hz: float = 0.17  # ... and its cutoff
+    collar_cutoff_hz: float = 0.0  # the collars' slow noise cutoff (0: the fitted one)
+
+    def __post_init__(self) -> None:
+        nyquist_hz = 12.5  # of the 25 fps motion
+        if not self.joints:
+            raise LayerOptionError("joints: must name at least one joint")
+        if self.scale < 0:
+            raise LayerOptionError(f"scale: must be >= 0, got {self.scale}")
+        if self.head_drift_rad < 0:
+            raise LayerOptionError(f"head_drift_rad: must be >= 0, got {self.head_drift_rad}")
+        if not 0 < self.head_drift_hz < nyquist_hz:
+            raise LayerOptionError(f"head_drift_hz: must be in (0, {nyquist_hz}), got {self.head_drift_hz}")
+        if not 0 <= self.collar_cutoff_hz < nyquist_hz:
+            raise LayerOptionError(
+                f"collar_cutoff_hz: must be 0 (as fitted) or in (0, {nyquist_hz}), got {self.collar_cutoff_hz}"
+            )
+
+
 def gaussian_kernel(cutoff_hz: float, fps: float) -> np.ndarray:
-    """(L,) the synthetic data's smoothing kernel for noise of `cutoff_hz` (gesture.synth.tracks.smooth_noise), scaled
+    """(L,) the synthetic data's smoothing kernel for noise of `cutoff_hz` (its Gaussian-smoothed noise), scaled
     to unit energy so white noise comes out at unit variance."""
     sigma = noise_sigma_frames(cutoff_hz, fps)
     radius = int(NOISE_TRUNCATE_SIGMAS * sigma + 0.5)  # as scipy's gaussian_filter1d
     kernel = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
     return kernel / np.sqrt((kernel**2).sum())
-
-
-def frame_rms(agent_pcm: np.ndarray | None, frames: int) -> np.ndarray:
-    """(frames,) the RMS of each frame's share of one step of agent audio (zeros without audio)."""
-    if agent_pcm is None or len(agent_pcm) < frames:
-        return np.zeros(frames)
-    usable = len(agent_pcm) // frames * frames
-    return np.sqrt(np.mean(np.square(np.asarray(agent_pcm[:usable], np.float64).reshape(frames, -1)), axis=1))
 
 
 class CausalSmoothNoise:
@@ -125,7 +118,8 @@ class CausalSmoothNoise:
 class LowpassNoise:
     """(C,) channels of unit-variance low-passed noise, one frame per `step(white)` (white: (C,) N(0, 1)).
 
-    The data's micro-motion noise (gesture.synth.tracks.lowpass_noise) run as it is made: per channel, a second-order
+    The data's micro-motion noise (Butterworth low-passed white noise, `gesture.layers.signal.lowpass_sos`) run as it
+    is made: per channel, a second-order
     section of the Butterworth low-pass at its own cutoff (transposed direct form II), its state warmed up on white
     noise at `reset` so that the first frames are already stationary."""
 
@@ -162,8 +156,8 @@ class LowpassNoise:
 
 
 class SpeakingTrack:
-    """How much the agent is speaking, in [0, 1], one frame at a time: its frames louder than the idle gate's
-    silence (SPEAKING_RMS) through a one-pole of SPEAKING_SMOOTH_S, as the synthetic agent's speaking track."""
+    """How much the agent is speaking, in [0, 1], one frame at a time: whether it speaks in the frame
+    (`StepContext.speaking`) through a one-pole of SPEAKING_SMOOTH_S, as the synthetic agent's speaking track."""
 
     def __init__(self, fps: float) -> None:
         self.alpha = float(np.exp(-1.0 / (SPEAKING_SMOOTH_S * fps)))
@@ -172,19 +166,19 @@ class SpeakingTrack:
     def reset(self) -> None:
         self.value = 0.0
 
-    def step(self, rms: float) -> float:
-        self.value = self.alpha * self.value + (1 - self.alpha) * float(rms > SPEAKING_RMS)
+    def step(self, speaking: bool) -> float:
+        self.value = self.alpha * self.value + (1 - self.alpha) * float(speaking)
         return self.value
 
 
 class VoiceEnvelope:
-    """The synthetic agent's speech envelope as its micro-motion uses it (gesture.synth.agent: speech_envelope, then
-    micro_motion_scale's smoothing), causally: each frame's RMS over the loud level, clipped to [0, 1], then a
-    one-pole of MICRO_ENVELOPE_SMOOTH_S. The data divides by the session's 95th percentile of voiced frames' RMS;
-    here that quantile is tracked as the audio comes (stochastic approximation, multiplicative steps)."""
+    """The synthetic agent's speech envelope as its micro-motion uses it, causally: each frame's RMS over the loud
+    level, clipped to [0, 1], then a one-pole of the fitted `envelope_smooth_s`. The data divides by the session's
+    95th percentile of voiced frames' RMS; here that quantile is tracked as the audio comes (stochastic
+    approximation, multiplicative steps)."""
 
     def __init__(self, fps: float) -> None:
-        self.alpha = float(np.exp(-1.0 / (MICRO_ENVELOPE_SMOOTH_S * fps)))
+        self.alpha = float(np.exp(-1.0 / (micro_fit().envelope_smooth_s * fps)))
         self.reset()
 
     def reset(self) -> None:
@@ -230,12 +224,14 @@ class HeadDrift:
 
 
 class MicroMotion:
-    """`step(poses (F, 55, 3), agent_pcm)` adds one micro-motion offset per frame to `joints`; `reset()` per
-    session. As in the synthetic data, its size follows the agent's own audio: calmer while it is silent, livelier
-    with its speech envelope.
+    """A motion layer: one micro-motion offset per frame post-multiplied on `joints`, then the posture reflexes,
+    then the head drift (`apply` on the poses); `reset()` per session. As in the synthetic data, its size follows
+    the agent's own audio: calmer while it is silent, livelier with its speech envelope.
 
-    `params`: joint -> its noise (gesture.synth.calibration.MicroNoise); `scale` multiplies every std; `head_drift`:
+    `params`: joint -> its noise (`gesture.layers.fitted.MicroNoise`); `scale` multiplies every std; `head_drift`:
     applied last, or None."""
+
+    stage = "motion"
 
     def __init__(
         self,
@@ -243,27 +239,23 @@ class MicroMotion:
         fps: float,
         seed: int = 0,
         scale: float = 1.0,
-        listening_scale: float = MICRO_LISTENING,
         head_drift: HeadDrift | None = None,
     ) -> None:
         if not params:
             raise ValueError("micro-motion needs at least one joint")
+        fit = self.fit = micro_fit()
         self.joints = sorted(params)
         self.std = scale * np.stack([np.asarray(params[j].std_rad, np.float64) for j in self.joints])  # (J, 3)
         self.fast_ratio = np.array([params[j].fast_ratio for j in self.joints])  # (J,)
         slow_hz = np.repeat([params[j].cutoff_hz for j in self.joints], 3)  # 3 axes per joint
-        quick_hz = np.full_like(slow_hz, MICRO_FAST_HZ)
+        quick_hz = np.full_like(slow_hz, fit.fast_hz)
         self.noise = LowpassNoise(np.concatenate([slow_hz, quick_hz]), fps)  # channels: slow, then quick
-        self.gate = CausalSmoothNoise(np.full(len(MICRO_PARTS), MICRO_GATE_HZ), fps)  # one per body part
-        part_of = {j: k for k, part in enumerate(MICRO_PARTS) for j in part}
+        self.gate = CausalSmoothNoise(np.full(len(fit.parts), fit.gate_hz), fps)  # one per body part
+        part_of = {j: k for k, part in enumerate(fit.parts) for j in part}
         self.part = np.array([part_of.get(j, 0) for j in self.joints])  # (J,)
-        own_log_std = {j: log_std for joints, log_std in OWN_GATES for j in joints}
-        self.own = [
-            k for k, j in enumerate(self.joints) if j in own_log_std
-        ]  # rows with their own gate, as in the data
-        self.own_log_std = np.array([own_log_std[self.joints[k]] for k in self.own])  # (own,)
-        self.own_gate = CausalSmoothNoise(np.full(len(self.own), MICRO_GATE_HZ), fps) if self.own else None
-        self.listening_scale = listening_scale
+        self.own = [k for k, j in enumerate(self.joints) if j in fit.own_gates]  # rows with their own gate
+        self.own_log_std = np.array([fit.own_gates[self.joints[k]] for k in self.own])  # (own,)
+        self.own_gate = CausalSmoothNoise(np.full(len(self.own), fit.gate_hz), fps) if self.own else None
         self.speaking = SpeakingTrack(fps)
         self.envelope = VoiceEnvelope(fps)
         self.reflexes = PostureReflexes(fps)
@@ -285,26 +277,33 @@ class MicroMotion:
         if self.head_drift is not None:
             self.head_drift.reset()
 
-    def offsets(self, rms: float) -> np.ndarray:
-        """The next frame's (J, 3) axis-angle offsets, given the frame's agent audio RMS (speaking above the idle
-        gate's silence)."""
-        turn = self.listening_scale + (1 - self.listening_scale) * self.speaking.step(rms)
-        level = turn * (1 + MICRO_ENVELOPE_GAIN * (self.envelope.step(rms) - 0.5))
-        gate = micro_gate(self.gate.step(self.rng.standard_normal(self.gate.channels)))[self.part]  # (J,)
+    def _gate(self, noise: np.ndarray, log_std: np.ndarray | float) -> np.ndarray:
+        fit = self.fit
+        return log_normal_gate(noise, log_std, fit.gate_max, fit.gate_log_std)
+
+    def offsets(self, rms: float, speaking: bool) -> np.ndarray:
+        """The next frame's (J, 3) axis-angle offsets, given the frame's agent audio RMS and whether it speaks."""
+        fit = self.fit
+        turn = fit.listening_scale + (1 - fit.listening_scale) * self.speaking.step(speaking)
+        level = turn * (1 + fit.envelope_gain * (self.envelope.step(rms) - 0.5))
+        gate = self._gate(self.gate.step(self.rng.standard_normal(self.gate.channels)), fit.gate_log_std)[self.part]
         slow, fast = self.noise.step(self.rng.standard_normal(self.noise.channels)).reshape(2, -1, 3)  # (J, 3) each
         noise = slow + self.fast_ratio[:, None] * fast
         if self.own_gate is not None:
             own = self.own_gate.step(self.rng.standard_normal(self.own_gate.channels))  # (own,)
-            gate[self.own] = micro_gate(own, self.own_log_std)
+            gate[self.own] = self._gate(own, self.own_log_std)
         offset = noise * self.std * (level * gate)[:, None]
         limit = LIMIT_STDS * self.std * np.sqrt(1 + self.fast_ratio**2)[:, None]  # the two noises' joint std
         return limit * np.tanh(offset / np.maximum(limit, 1e-12))
 
-    def step(self, poses: np.ndarray, agent_pcm: np.ndarray | None) -> np.ndarray:
-        """(F, 55, 3) axis-angle and this step's agent audio (float in [-1, 1], or None: silent) -> the same poses
-        with each frame's offsets post-multiplied on `joints`, then the posture reflexes (gesture.synth.reflex), then
-        the head drift."""
-        offsets = np.stack([self.offsets(rms) for rms in frame_rms(agent_pcm, len(poses))])  # (F, J, 3)
+    def step(self, motion: Motion, context: StepContext) -> Motion:
+        return replace_fields(motion, poses=self.apply(motion.poses, context.frame_rms, context.speaking))
+
+    def apply(self, poses: np.ndarray, rms: np.ndarray, speaking: np.ndarray) -> np.ndarray:
+        """(F, 55, 3) axis-angle, each frame's agent audio RMS (F,) and whether the agent speaks in it (F,) bool ->
+        the same poses with each frame's offsets post-multiplied on `joints`, then the posture reflexes, then the
+        head drift."""
+        offsets = np.stack([self.offsets(r, bool(s)) for r, s in zip(rms, speaking)])  # (F, J, 3)
         local = axis_angle_to_matrix_np(np.asarray(poses, np.float64))  # (F, 55, 3, 3)
         local[:, self.joints] = local[:, self.joints] @ axis_angle_to_matrix_np(offsets)
         local = self.reflexes.step(local)
@@ -323,17 +322,29 @@ def calibrated_micro_motion(
     head_drift: HeadDrift | None = None,
     cutoff_hz: Mapping[int, float] | None = None,
 ) -> MicroMotion:
-    """The layer with the calibration's fitted parameters for `joints` (each must have been fitted); a joint in
-    `cutoff_hz` has its slow noise low-passed at that cutoff instead of its fitted one."""
-    fitted = load_calibration().micro_motion
+    """The layer with the fitted parameters for `joints` (each must have been fitted); a joint in `cutoff_hz` has
+    its slow noise low-passed at that cutoff instead of its fitted one."""
+    fitted = micro_fit().joints
     missing = [j for j in joints if j not in fitted]
     if missing:
         raise ValueError(f"joints {missing}: no fitted micro-motion (fitted: {sorted(fitted)})")
     cutoff_hz = cutoff_hz or {}
     return MicroMotion(
-        {j: replace(fitted[j], cutoff_hz=cutoff_hz.get(j, fitted[j].cutoff_hz)) for j in joints},
+        {j: replace_fields(fitted[j], cutoff_hz=cutoff_hz.get(j, fitted[j].cutoff_hz)) for j in joints},
         fps,
         seed,
         scale,
         head_drift=head_drift,
     )
+
+
+@register("micro_motion", MicroMotionOptions)
+def build(options: MicroMotionOptions, env: LayerEnv) -> MicroMotion:
+    drift = None
+    if options.head_drift_rad > 0:
+        drift = HeadDrift(options.head_drift_rad, options.head_drift_hz, env.fps, env.seed)
+    collars = {j: options.collar_cutoff_hz for j in COLLARS} if options.collar_cutoff_hz > 0 else {}
+    try:
+        return calibrated_micro_motion(options.joints, env.fps, env.seed, options.scale, drift, collars)
+    except ValueError as error:
+        raise LayerOptionError(f"joints: {error}") from None

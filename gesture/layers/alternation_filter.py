@@ -1,9 +1,7 @@
 """Causal removal of the decoded motion's frame-to-frame alternation (not in the reference).
 
-Why: the codecs decode two frames per 80 ms step, and their output alternates from one frame to the next. On the
-real BEAT2 clip's speech, the decoded pelvis and spine had 18 times the real speaker's angular-velocity power at
-12-12.5 Hz (collars and shoulders 18x, neck and head 4.5x), rising from about 2x at 8 Hz; through the spine it shook
-the head in space (the position of the head accelerated 1.8x as hard as the speaker's, median and 99th percentile).
+The codecs decode two frames per 80 ms step, and their output alternates from one frame to the next, strongest in
+the torso and legs near half the frame rate (measurements: docs/quality_history.md, "Runtime layers").
 
 Each output frame is the midpoint of this input frame and the previous one: for rotations the normalised sum of the
 two quaternions on the shorter arc (the slerp midpoint), for the translation the mean. That two-tap average has the
@@ -14,12 +12,25 @@ of half a frame (20 ms). The first frame of a session passes unchanged.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ecas.core.body import NUM_JOINTS
 from gesture.body.rotation import axis_angle_to_quaternion, quaternion_to_axis_angle
+from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
+from gesture.layers.registry import register
+
+TORSO_AND_LEG_JOINTS = tuple(range(18))  # pelvis, legs, spine, neck, collars, head, shoulders
+
+
+@dataclass(frozen=True)
+class AlternationFilterOptions:
+    joints: tuple[int, ...] = TORSO_AND_LEG_JOINTS  # the joints averaged, with the translation (arms: the stabilizer)
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise LayerOptionError("joints: must name at least one joint")
 
 
 @dataclass
@@ -29,8 +40,10 @@ class AlternationState:
 
 
 class AlternationFilter:
-    """`step(poses (F, 55, 3), trans (F, 3))` averages each frame of `joints` and the translation with the frame
-    before; `reset()` per session."""
+    """A motion layer: each frame of `joints` and the translation averaged with the frame before (`apply` on the
+    arrays); `reset()` per session."""
+
+    stage = "motion"
 
     def __init__(self, joints: Sequence[int]) -> None:
         if not joints or not all(0 <= j < NUM_JOINTS for j in joints):
@@ -41,7 +54,12 @@ class AlternationFilter:
     def reset(self) -> None:
         self.state = AlternationState(None, None)
 
-    def step(self, poses: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def step(self, motion: Motion, context: StepContext) -> Motion:
+        poses, trans = self.apply(motion.poses, motion.trans)
+        return replace(motion, poses=poses, trans=trans)
+
+    def apply(self, poses: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """poses (F, 55, 3), trans (F, 3) -> the same, filtered."""
         poses, trans = np.asarray(poses), np.asarray(trans)
         if poses.ndim != 3 or poses.shape[1:] != (NUM_JOINTS, 3):
             raise ValueError(f"poses: expected (frames, {NUM_JOINTS}, 3), got {poses.shape}")
@@ -61,3 +79,8 @@ class AlternationFilter:
         out = poses.copy()
         out[:, self.joints] = quaternion_to_axis_angle(middle)
         return out, ((trans64 + trans_before) / 2).astype(trans.dtype)
+
+
+@register("alternation_filter", AlternationFilterOptions)
+def build(options: AlternationFilterOptions, env: LayerEnv) -> AlternationFilter:
+    return AlternationFilter(options.joints)

@@ -1,9 +1,10 @@
-"""Tiny random models (LM + three codecs) with the real structure, for tests and smoke runs."""
+"""Tiny random models (LM + three codecs) with the real structure, for the tests."""
 
 from __future__ import annotations
 
 import torch
 
+from ecas.core.body import REGIONS
 from ecas.core.spec import ConditionSpec
 from gesture.codec.build import build_codec
 from gesture.codec.config import CodecConfig, RegionSizes
@@ -56,7 +57,7 @@ def tiny_codecs(seed: int = 0, card: int = 16, code_dim: int = 4) -> dict[str, G
     torch.manual_seed(seed)
     cfg = tiny_codec_config(card, code_dim)
     codecs = {}
-    for region in ("upper", "lower", "face"):
+    for region in REGIONS:
         codec = build_codec(cfg, region).eval()
         with torch.no_grad():
             for layer in codec.quantizer.vq.layers:

@@ -1,4 +1,4 @@
-"""Helpers of the render tests: GL availability, the shared BEAT2 clip, silhouette measures."""
+"""Helpers of the render tests: GL availability, silhouette measures, decoding an MP4."""
 
 import ctypes.util
 from pathlib import Path
@@ -7,15 +7,10 @@ import av
 import numpy as np
 import pytest
 
-from ecas.core.paths import data_root
 from ecas.core.timing import MOTION_FPS
 from render.renderer import BACKGROUND_RGB
 
-BEAT2_NPZ = data_root() / "beat2" / "2_scott_0_1_1.npz"
-BEAT2_WAV = BEAT2_NPZ.with_suffix(".wav")
-
 needs_osmesa = pytest.mark.skipif(ctypes.util.find_library("OSMesa") is None, reason="libOSMesa is not installed")
-needs_beat2 = pytest.mark.skipif(not BEAT2_NPZ.is_file(), reason="../shared/data/beat2 clip not present")
 
 
 def silhouette(rgb: np.ndarray, ground_rows: float = 0.0) -> np.ndarray:

@@ -1,21 +1,14 @@
 """Posture reflexes (not in the reference): the chest and the head hold their course in space.
 
-A real speaker's spine turns against the quick turns of his pelvis, and his neck against his chest's. On the BEAT2
-clip (2_scott_0_1_1), the world angular velocity of each part of the chain, band-passed at 2-8 Hz: the pelvis and
-the spine above it are correlated -0.76, so the chest's quick turning has 0.23 of the variance its parts would give if
-they were independent; the neck and head against the chest, -0.52 (slow, below 2 Hz: -0.42). Micro-motion drawn
-independently per joint has none of that: the synthetic agent and the default agent had 1.3x his head's median speed
-in space and 2x its angular acceleration, and 2.3x the chest's, with every joint's own (local) speed matched.
+A real speaker's spine turns against the quick turns of his pelvis, and his neck against his chest's; micro-motion
+drawn independently per joint does not. So each chain counters a share of its end's deviation from that end's slow
+course: the course is a one-pole low-pass of the end's world rotation (its quaternion, filtered and normalised), and
+the counter-turn, spread evenly over the chain's joints, is ``-share * log(course^T end)``, turning about the end's
+own axis (measurements behind the shares and cutoffs: docs/quality_history.md, "Runtime layers").
 
-So each chain counters a share of its end's deviation from that end's slow course: the course is a one-pole low-pass
-of the end's world rotation (its quaternion, filtered and normalised), and the counter-turn, spread evenly over the
-chain's joints, is ``-share * log(course^T end)``, turning about the end's own axis. The shares and cutoffs bring the
-default agent's chest and head to 0.74-1.30x the speaker's speeds and accelerations in space (seeds 0-4; the
-accelerations were 1.9-2.3x), while the local statistics of spine, neck and head move by a few hundredths (seed 0:
-the spine's median speed 1.36 -> 1.30 of the speaker's, the neck and head's still fraction 1.00 -> 0.94).
-
-Causal and frame by frame: the whole-session form (the synthetic agent) and the streamed one (the runtime layer,
-``gesture.micro_motion``) give the same motion. The pelvis (joint 0) is the root: its local rotation is its world one.
+Causal and frame by frame: the whole-session form (the synthetic agent, `gesture.synth.agent`) and the streamed one
+(the micro-motion layer, `gesture.layers.micro_motion`) give the same motion. The pelvis (joint 0) is the root: its
+local rotation is its world one.
 """
 
 from __future__ import annotations
@@ -25,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
-from ecas.core.body import NECK_HEAD
+from ecas.core.body import NECK_HEAD, SPINE
 from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 
 PELVIS = 0
@@ -40,7 +33,7 @@ class Reflex:
     course_hz: float
 
 
-CHEST = Reflex(joints=(3, 6, 9), share=0.7, course_hz=1.0)  # spine1-3 under the chest (spine3)
+CHEST = Reflex(joints=SPINE, share=0.7, course_hz=1.0)  # spine1-3 under the chest (spine3)
 HEAD = Reflex(joints=NECK_HEAD, share=0.5, course_hz=0.5)  # neck and head, above the chest
 REFLEXES = (CHEST, HEAD)  # in this order: the head's parent is the chest after its reflex
 
