@@ -133,7 +133,7 @@ def run_cli(args: list[str]) -> subprocess.CompletedProcess:
 
 
 def test_the_command_lines_that_take_a_body_model_run_nothing(tmp_path, model_arrays):
-    """`render.play --body-model`, `gesture.evaluate --smplx-model`: one line, exit 2, no marker."""
+    """`render.play --body-model`, `gesture.eval.evaluate --smplx-model`: one line, exit 2, no marker."""
     marker = tmp_path / "ran"
     evil = planted_npz(tmp_path / "evil.npz", marker, model_arrays, "v_template")
     clip = tmp_path / "clip.npz"
@@ -146,7 +146,9 @@ def test_the_command_lines_that_take_a_body_model_run_nothing(tmp_path, model_ar
         mocap_frame_rate=30,
     )
     play = run_cli(["-m", "render.play", str(clip), "--still", str(tmp_path / "s.png"), "--body-model", str(evil)])
-    evaluate = run_cli(["-m", "gesture.evaluate", "--motion", str(clip), "--gt", str(clip), "--smplx-model", str(evil)])
+    evaluate = run_cli(
+        ["-m", "gesture.eval.evaluate", "--motion", str(clip), "--gt", str(clip), "--smplx-model", str(evil)]
+    )
     for result in (play, evaluate):
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
