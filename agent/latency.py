@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ecas.core.atomic import atomic_file, write_text_atomic
 from ecas.core.messages import Metrics
 from ecas.core.timing import FRAMES_PER_STEP, NS_PER_MS
 
@@ -151,7 +152,7 @@ class LatencyRecorder:
         live: bool = True,
     ) -> dict:
         summary = self.summary(counters, clock, timing, live)
-        (run_dir / "latency.json").write_text(json.dumps(summary, indent=2))
+        write_text_atomic(run_dir / "latency.json", json.dumps(summary, indent=2))
         if self.e2e_ms:
             self._plot(run_dir / "latency.png", live)
         return summary
@@ -184,8 +185,11 @@ class LatencyRecorder:
             ylabel="steps",
         )
         fig.tight_layout()
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
+        try:
+            with atomic_file(path) as f:
+                fig.savefig(f, dpi=90, format="png")
+        finally:
+            plt.close(fig)
 
 
 def throughput(timing: dict, counters: dict[str, dict], sink: str) -> dict:

@@ -32,7 +32,7 @@ from agent.latency import LatencyRecorder
 from agent.process import COMPONENT_FACTORIES, StageLaunch, stage_main
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
-from ecas.core.bus import Publisher, Subscriber, stage_address
+from ecas.core.bus import Publisher, Subscriber, address_option, beyond_loopback, stage_address
 from ecas.core.component import RunContext
 from ecas.core.messages import Command, Control, Kind, Log, Metrics
 from ecas.core.timing import STEP_MS
@@ -41,6 +41,7 @@ log = logging.getLogger("supervisor")
 
 LOG_TAIL_LINES = 12
 KILL_GRACE_S = 0.5
+PAUSE_MIN_S = 1.0  # a gap this long in the supervisor's own loop (which never blocks 0.1 s) means it was stopped
 IPC_DIR_PREFIX = "ecas-"
 
 
@@ -60,6 +61,40 @@ class StageStatus:
     progress_s: float = field(default_factory=time.monotonic)  # when progress_step last moved
 
 
+class PauseClock:
+    """Silence measured against the supervisor's own loop, which a stopped process cannot fool.
+
+    The loop observes the monotonic clock every few ms. A gap beyond `PAUSE_MIN_S` means the supervisor itself
+    was not running (Ctrl-Z and `fg` on the whole run, SIGSTOP/SIGCONT of its process group, a machine too loaded
+    to schedule it): the stages were most likely stopped with it, so their silence in that gap is not theirs.
+    After such a gap the stages get `grace_s` to beat again before any is called unresponsive. A single stopped
+    stage leaves no gap in this loop and is named after the usual timeout.
+    """
+
+    def __init__(self, grace_s: float):
+        self.grace_s = grace_s
+        self.last_s = time.monotonic()
+        self.grace_until_s = 0.0
+        self.paused_s = 0.0  # total time the supervisor was away
+
+    def observe(self) -> float:
+        """The gap since the last observation if it was a pause, else 0."""
+        now = time.monotonic()
+        gap, self.last_s = now - self.last_s, now
+        if gap < PAUSE_MIN_S:
+            return 0.0
+        self.paused_s += gap
+        self.grace_until_s = now + self.grace_s
+        return gap
+
+    def reset(self) -> None:
+        """After work that blocks the loop on purpose (spawning the stages)."""
+        self.last_s = time.monotonic()
+
+    def in_grace(self, now: float) -> bool:
+        return now < self.grace_until_s
+
+
 class Supervisor:
     def __init__(self, app: AppConfig, run: RunContext):
         self.app, self.run_ctx, self.pipeline = app, run, tuple(app.run.stages)
@@ -69,6 +104,7 @@ class Supervisor:
         self.stages: dict[str, StageStatus] = {}
         self.latency = LatencyRecorder(self.pipeline)
         self.clock = ClockSync()
+        self.pause = PauseClock(app.bus.heartbeat_timeout_s)
         self.interrupted = False
         self.error: str | None = None
         self.sink_done = False
@@ -89,11 +125,7 @@ class Supervisor:
             self._wait_for_start()
             self._send(Command.START, {"clock_offsets_ns": self.clock.offsets_ns()})
             self.started_s = time.monotonic()
-            log.info(
-                "started: %s (bus: %s)",
-                " → ".join(self.pipeline),
-                self.ipc_dir if self.app.bus.transport == "ipc" else f"tcp {self.app.bus.host}",
-            )
+            log.info("started: %s (bus: %s)", " → ".join(self.pipeline), self._bus_description())
             self._watch()
         except RunFailed as e:
             self.error = str(e)
@@ -122,10 +154,22 @@ class Supervisor:
             ) from None
         addresses = [stage_address(s, self.app.bus, self.ipc_dir) for s in self.pipeline]
         self.dashboard = DashboardProcess.start(self.app, self.run_ctx, self.ipc_dir)
+        warn_public_listeners(self._listeners(), self.app)
         addresses += [self.dashboard.address] if self.dashboard else []
         self.sub = Subscriber(
             ctx, addresses, [k.value for k in (Kind.CONTROL, Kind.METRICS, Kind.LOG)], live_queue=None
         )
+
+    def _listeners(self) -> dict[str, str]:
+        """Every bus endpoint this host binds: its stages, the supervisor and the dashboard."""
+        names = [*self.app.run.local_stages, SUPERVISOR] + ([DASHBOARD] if self.dashboard else [])
+        return {name: stage_address(name, self.app.bus, self.ipc_dir) for name in names}
+
+    def _bus_description(self) -> str:
+        listeners = self._listeners()
+        if all(address.startswith("ipc://") for address in listeners.values()):
+            return str(self.ipc_dir)
+        return ", ".join(f"{name} {address}" for name, address in listeners.items())
 
     def _on_signal(self, signum, _frame) -> None:
         self.interrupted = True
@@ -133,6 +177,7 @@ class Supervisor:
     def _spawn(self) -> None:
         local = spawn_stages(self.app, self.run_ctx, self.ipc_dir, self.factories)
         self.stages = {stage: StageStatus(local.get(stage)) for stage in self.pipeline}
+        self.pause.reset()
 
     # ---- phases ----------------------------------------------------------------------------------------------
     def _wait_ready(self) -> None:
@@ -173,10 +218,27 @@ class Supervisor:
             remaining_ms = int(max(0.0, end - time.monotonic()) * 1000)
             if self.sub.socket.poll(remaining_ms, zmq.POLLIN):
                 self.sub.poll_into_queue()
+            self._observe_pause()
             self._consume()
             if time.monotonic() >= end:
                 break
+        self._observe_pause()
         self._check_processes()
+
+    def _observe_pause(self) -> None:
+        """A pause of the supervisor: what the stages did not do in it is not held against them (PauseClock)."""
+        gap_s = self.pause.observe()
+        if not gap_s:
+            return
+        for status in self.stages.values():
+            status.progress_s += gap_s  # the stall check counts from the resumption
+        log.log(
+            logging.INFO if gap_s > 2 * PAUSE_MIN_S else logging.DEBUG,
+            "the supervisor was paused for %.1f s (Ctrl-Z, SIGSTOP or an overloaded machine); the stages have "
+            "%.0f s to beat again",
+            gap_s,
+            self.pause.grace_s,
+        )
 
     def _consume(self) -> None:
         while self.sub.controls:
@@ -228,10 +290,13 @@ class Supervisor:
                 )
             if status.error is not None:
                 raise RunFailed(f"stage '{name}' failed: {status.error}")
-            if status.state != "starting" and now - status.last_beat_s > self.app.bus.heartbeat_timeout_s:
-                raise RunFailed(
-                    f"stage '{name}' stopped responding (no heartbeat for {now - status.last_beat_s:.1f} s)"
-                )
+            silent_s = now - status.last_beat_s
+            if (
+                status.state != "starting"
+                and silent_s > self.app.bus.heartbeat_timeout_s
+                and not self.pause.in_grace(now)
+            ):
+                raise RunFailed(f"stage '{name}' stopped responding (no heartbeat for {silent_s:.1f} s)")
         self._check_progress(now)
 
     def _check_progress(self, now: float) -> None:
@@ -292,6 +357,19 @@ class Supervisor:
         return {name: status.counters for name, status in self.stages.items()}
 
 
+def warn_public_listeners(listeners: dict[str, str], app: AppConfig) -> None:
+    """One warning, naming the option, for every bus endpoint other machines can reach."""
+    for name, address in listeners.items():
+        if beyond_loopback(address):
+            log.warning(
+                "bus: %s listens on %s (%s): anyone who can reach this machine can read the conversation on it "
+                "and send messages into the run; keep it on 127.0.0.1 unless the run spans hosts",
+                name,
+                address,
+                address_option(name, app.bus),
+            )
+
+
 def spawn_stages(app: AppConfig, run: RunContext, ipc_dir: Path, factories: dict[str, str]) -> dict[str, mp.Process]:
     """Start this host's stages (`run.spawn`, default all), each in its own spawned process."""
     ctx = mp.get_context("spawn")
@@ -321,7 +399,9 @@ def run_worker(app: AppConfig, run: RunContext) -> int:
     """`launch.py --worker`: start this host's stages and wait; the supervisor on the main host drives them."""
     stop = []
     previous = {sig: signal.signal(sig, lambda *_: stop.append(1)) for sig in (signal.SIGINT, signal.SIGTERM)}
-    processes = spawn_stages(app, run, Path(tempfile.gettempdir()), {**COMPONENT_FACTORIES, **app.run.components})
+    ipc_dir = Path(tempfile.gettempdir())
+    warn_public_listeners({s: stage_address(s, app.bus, ipc_dir) for s in app.run.local_stages}, app)
+    processes = spawn_stages(app, run, ipc_dir, {**COMPONENT_FACTORIES, **app.run.components})
     log.info("worker running %s; waiting for the supervisor", ", ".join(processes))
     try:
         while not stop and any(p.is_alive() for p in processes.values()):

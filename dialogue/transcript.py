@@ -1,9 +1,10 @@
 """The conversation as turns with per-word times for both sides, written to the run's transcript.json."""
 
 import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+
+from ecas.core.atomic import write_text_atomic
 
 
 @dataclass
@@ -39,10 +40,8 @@ class Transcript:
         return {"backend": self.backend, "turns": [_rounded(asdict(t)) for t in turns]}
 
     def write(self, path: Path) -> None:
-        """Atomic replace, so a reader never sees a half-written file."""
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=1))
-        os.replace(tmp, path)
+        """Atomic replace, so a reader never sees a half-written file (and a failed write leaves the last one)."""
+        write_text_atomic(path, json.dumps(self.to_dict(), indent=1))
 
 
 def _rounded(value):

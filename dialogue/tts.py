@@ -115,7 +115,9 @@ class EspeakTts:
 
     def _on_synth(self, wav, n_samples, events) -> int:
         if n_samples > 0:
-            self._chunks.append(np.ctypeslib.as_array(wav, shape=(n_samples,)).copy())
+            # string_at copies the samples; np.ctypeslib.as_array would create (and cache forever) a new ctypes
+            # array type and pointer type for every distinct chunk length: a slow leak over a long conversation.
+            self._chunks.append(np.frombuffer(ctypes.string_at(wav, n_samples * 2), dtype=np.int16))
         i = 0
         while events[i].type != _EVENT_LIST_TERMINATED:
             ev = events[i]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import socket
 import sys
 import tempfile
@@ -26,10 +27,13 @@ import yaml
 
 from agent.io.sources import NoAudioDevice, check_input_device
 from agent.latency import format_table
+from agent.preflight import check_before_start, check_utf8_arguments
+from agent.report_lock import ReportLock
 from agent.sections import AppConfig, load_app_config
 from agent.stage import SUPERVISOR
 from agent.supervisor import Supervisor, run_worker
-from ecas.core.audio_file import AudioFileError, load_audio
+from ecas.core.atomic import write_text_atomic
+from ecas.core.audio_file import AudioFileError, load_audio, scan_audio
 from ecas.core.bus import stage_address
 from ecas.core.component import RunContext
 from ecas.core.config import ConfigError, config_path
@@ -161,7 +165,7 @@ def check_inputs(app: AppConfig) -> None:
     if app.io.source == "replay":
         if not app.io.replay_path:
             raise ConfigError("io.replay_path: no recording to replay (pass --replay FILE or --mic)")
-        load_audio(app.io.replay_path, SAMPLE_RATE_HZ)
+        scan_audio(app.io.replay_path)  # decoded once in constant memory; the io stage streams it again
     elif app.io.source == "mic":
         check_input_device(app.io.input_device)
 
@@ -199,18 +203,6 @@ def check_checkpoints(app: AppConfig) -> None:
             raise ConfigError(f"gesture.{key}: required ({what}); the config sets none")
         if not Path(path).is_dir():
             raise ConfigError(f"gesture.{key}: {path} is not a directory ({what})")
-
-
-def check_weight_form(app: AppConfig) -> None:
-    """A gesture.dtype this CPU cannot run fast: one warning line now, or (gesture.dtype_fallback false) a stop."""
-    from gesture.nn.weights import FAST_KERNEL_NEEDS, UnsupportedFormError, require_fast_form
-
-    if "gesture" not in app.run.local_stages or app.gesture.dtype not in FAST_KERNEL_NEEDS:
-        return
-    try:
-        require_fast_form(app.gesture.dtype, "gesture.dtype", app.gesture.dtype_fallback, "gesture.dtype_fallback")
-    except UnsupportedFormError as e:
-        raise ConfigError(str(e)) from None
 
 
 def with_free_tcp_ports(app: AppConfig) -> AppConfig:
@@ -272,6 +264,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     try:
+        check_utf8_arguments(sys.argv[1:] if argv is None else argv)
         speak_s = len(load_audio(args.speak, SAMPLE_RATE_HZ)) / SAMPLE_RATE_HZ if args.speak else None
         app = load_app_config(args.config, [*mode_overrides(args, speak_s), *args.overrides])
         check_report_dir(app)
@@ -280,21 +273,54 @@ def main(argv=None) -> int:
         app = with_dialogue_spec(app)
         check_inputs(app)
         check_checkpoints(app)
-        check_weight_form(app)
+        check_before_start(app)
         check_mp4_target(app)
         app = with_free_tcp_ports(app)
         check_ports(app, args.worker)
     except (ConfigError, AudioFileError, NoAudioDevice) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USAGE
-    run_dir = app.run.make_report_dir(time.strftime("%Y%m%d-%H%M%S"))
-    (run_dir / "config.yaml").write_text(
-        yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False)
-    )
-    run = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
+    except OSError as e:  # e.g. no usable temporary directory on a full disk
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        run_dir, created = open_report_dir(app)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    lock = ReportLock(run_dir)
+    try:
+        lock.acquire()
+        write_text_atomic(
+            run_dir / "config.yaml", yaml.safe_dump(json.loads(json.dumps(asdict(app), default=str)), sort_keys=False)
+        )
+    except (ConfigError, OSError) as e:
+        lock.release()
+        if created and isinstance(e, OSError):
+            shutil.rmtree(run_dir, ignore_errors=True)
+        what = e if isinstance(e, ConfigError) else f"--report {run_dir}: cannot write there ({e.strerror or e})"
+        print(f"error: {what}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return run(app, args, run_dir)
+    finally:
+        lock.release()
+
+
+def open_report_dir(app: AppConfig) -> tuple[Path, bool]:
+    """The run's report directory, and whether this run created it; ConfigError (one line) when it cannot be."""
+    existed = bool(app.run.report_dir) and Path(app.run.report_dir).is_dir()
+    try:
+        return app.run.make_report_dir(time.strftime("%Y%m%d-%H%M%S")), not existed
+    except OSError as e:
+        raise ConfigError(f"--report {app.run.report_dir or 'runs/'}: cannot create it ({e.strerror or e})") from None
+
+
+def run(app: AppConfig, args: argparse.Namespace, run_dir: Path) -> int:
+    run_ctx = RunContext(run_dir=run_dir.resolve(), live=app.run.live, seed=app.run.seed, session=uuid.uuid4().hex[:12])
     if args.worker:
-        return run_worker(app, run)
-    supervisor = Supervisor(app, run)
+        return run_worker(app, run_ctx)
+    supervisor = Supervisor(app, run_ctx)
     code = supervisor.run()
     try:
         summary = supervisor.latency.write(

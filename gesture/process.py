@@ -19,12 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ecas.core.atomic import atomic_file, write_text_atomic
 from ecas.core.component import RunContext
 from ecas.core.messages import DialogueStep, GestureStep, Message
 from ecas.core.timing import MOTION_FPS
 from gesture.build import build_generator  # noqa: F401 (re-exported: its old home)
 from gesture.config import GestureConfig
 from gesture.engine import Engine, MotionStep
+from gesture.motion_spool import MotionSpool
 
 log = logging.getLogger(__name__)
 STATS_FILE = "gesture.json"
@@ -41,7 +43,7 @@ class GestureComponent:
         self.session: str | None = None
         self.step_ms: list[float] = []  # bounded: summarised and cleared every STATS_EVERY steps
         self.summary = {"steps": 0, "sessions": 0}
-        self.record: list[GestureStep] | None = None if run.live else []
+        self.record = None if run.live else MotionSpool(run.run_dir / MOTION_FILE)  # on disk: flat memory
 
     def handle(self, msg: Message) -> Sequence[Message]:
         if not isinstance(msg, DialogueStep):
@@ -85,16 +87,25 @@ class GestureComponent:
         self._summarise()
         self.engine.close()
         self.run.run_dir.mkdir(parents=True, exist_ok=True)
-        (self.run.run_dir / STATS_FILE).write_text(json.dumps(self.summary, indent=2))
-        if self.record:
-            write_motion(self.run.run_dir / MOTION_FILE, self.record)
+        write_text_atomic(self.run.run_dir / STATS_FILE, json.dumps(self.summary, indent=2))
+        if self.record is not None:
+            self.record.close(MOTION_FPS)
+
+    def partial_files(self) -> list[Path]:
+        return self.record.partial_files() if self.record is not None else []
 
 
 def write_motion(path: Path, steps: Sequence[GestureStep | MotionStep]) -> None:
-    """The generated steps (the stage's messages or the engine's steps) as one npz (see the module docstring)."""
+    """The generated steps (the stage's messages or the engine's steps) as one npz (see the module docstring),
+    written atomically (ecas.core.atomic)."""
     poses = np.concatenate([s.poses for s in steps])  # (2T, 55, 3)
+    with atomic_file(path) as f:
+        _savez(f, steps, poses)
+
+
+def _savez(f, steps: Sequence[GestureStep], poses: np.ndarray) -> None:
     np.savez(
-        path,
+        f,
         poses=poses.reshape(len(poses), -1),
         trans=np.concatenate([s.trans for s in steps]),
         expressions=np.concatenate([s.expressions for s in steps]),

@@ -6,13 +6,13 @@ returns the same `BodyModel` the built-in avatar produces, so the renderer and r
 
 from __future__ import annotations
 
-import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ecas.core.body import NUM_EXPRESSIONS, NUM_JOINTS
+from gesture.body.model_file import ModelFileError, read_model_file
 from gesture.body.skeleton import PARENTS
 
 SHAPE_SPACE_DIM = 300  # SMPL-X shapedirs columns [0, 300) are body shape, [300, 400) expressions
@@ -51,27 +51,19 @@ class BodyModel:
 
 
 def load_smplx_model(path: str | Path) -> BodyModel:
-    """Read a real SMPL-X model file (.npz or .pkl). Any problem is one BodyModelError with where to get it."""
+    """Read a real SMPL-X model file (.npz or .pkl) without running any code it holds
+    (`gesture.body.model_file`). Any problem is one BodyModelError with where to get it."""
     path = Path(path)
     if not path.is_file():
         raise BodyModelError(f"render.body_model: {path} does not exist. {SMPLX_HELP}")
+    if path.suffix not in (".npz", ".pkl"):
+        raise BodyModelError(f"render.body_model: {path} must be an .npz or .pkl SMPL-X model file. {SMPLX_HELP}")
     try:
-        data = _read_model_file(path)
-        return _body_model_from_arrays(data, path.stem)
+        return _body_model_from_arrays(read_model_file(path), path.stem)
     except BodyModelError:
         raise
-    except (OSError, ValueError, KeyError, IndexError, pickle.UnpicklingError, EOFError, TypeError) as err:
+    except (ModelFileError, KeyError, IndexError, TypeError, ValueError) as err:
         raise BodyModelError(f"render.body_model: {path} is not a readable SMPL-X model ({err}). {SMPLX_HELP}") from err
-
-
-def _read_model_file(path: Path) -> dict:
-    if path.suffix == ".npz":
-        with np.load(path, allow_pickle=True) as data:
-            return {k: data[k] for k in data.files}
-    if path.suffix == ".pkl":
-        with path.open("rb") as f:
-            return dict(pickle.load(f, encoding="latin1"))
-    raise BodyModelError(f"render.body_model: {path} must be an .npz or .pkl SMPL-X model file. {SMPLX_HELP}")
 
 
 def _dense(array) -> np.ndarray:

@@ -148,7 +148,7 @@ async def _page_poses(avatar: str | None, poses: np.ndarray, trans: np.ndarray) 
     def snapshot():
         return [hello_event(("io",), True, "s", False, render_mode="browser")]
 
-    runner, port = await start_server(make_app(Hub(snapshot, lambda _c: None), avatar), "127.0.0.1", 0)
+    runner, port = await start_server(make_app(Hub(snapshot, lambda _c: None), avatar=avatar), "127.0.0.1", 0)
     try:
         async with HeadlessChromium(f"http://127.0.0.1:{port}/", 800, 600) as page:
             await page.wait_for("window.ecasAvatar && window.ecasAvatar.ready", timeout_s=120)

@@ -12,6 +12,7 @@ import logging
 import multiprocessing as mp
 from pathlib import Path
 
+from agent.dashboard.access import new_token
 from agent.dashboard.process import DASHBOARD, DashboardLaunch, dashboard_main, page_url
 from agent.sections import AppConfig
 from ecas.core.bus import stage_address
@@ -32,18 +33,19 @@ class DashboardProcess:
         cfg = app.dashboard
         if not cfg.enabled:
             return None
-        if not cfg.loopback_only:
+        token = None if cfg.loopback_only else new_token()
+        if token:
             log.warning(
-                "the dashboard listens on %s:%d: anyone who can reach this machine can watch the "
-                "conversation and start or stop the agent",
+                "the dashboard listens on %s:%d (dashboard.host / --host): anyone who can reach this machine and "
+                "has the URL below, with its token, can watch the conversation and start or stop the agent",
                 cfg.host,
                 cfg.port,
             )
-        launch = DashboardLaunch(app, run, ipc_dir)
+        launch = DashboardLaunch(app, run, ipc_dir, token)
         process = mp.get_context("spawn").Process(target=dashboard_main, args=(launch,), name=DASHBOARD)
         process.start()
         tls = cfg.tls_cert is not None
-        shown = page_url(cfg.host, cfg.port, tls) if cfg.port else f"see {run.run_dir / 'dashboard.url'}"
+        shown = page_url(cfg.host, cfg.port, tls, token) if cfg.port else f"see {run.run_dir / 'dashboard.url'}"
         log.info("dashboard: %s%s", shown, " (the run waits for its Start button)" if cfg.wait_for_start else "")
         return cls(process, stage_address(DASHBOARD, app.bus, ipc_dir), launch.log_path)
 

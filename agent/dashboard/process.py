@@ -39,6 +39,7 @@ from agent.latency import DISPLAY_KEY
 from agent.process import SupervisorWatch, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
+from ecas.core.atomic import write_text_atomic
 from ecas.core.bus import Publisher, Subscriber, stage_address
 from ecas.core.component import RunContext
 from ecas.core.messages import (
@@ -75,6 +76,7 @@ class DashboardLaunch:
     app: AppConfig
     run: RunContext
     ipc_dir: Path
+    token: str | None = None  # required in every request (a dashboard beyond loopback; agent.dashboard.access)
 
     @property
     def log_path(self) -> Path:
@@ -242,9 +244,10 @@ async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
     loop.add_signal_handler(signal.SIGTERM, supervisor.stop)
     cfg = launch.app.dashboard
     tls = (cfg.tls_cert, cfg.tls_key) if cfg.tls_cert else None
-    runner, port = await start_server(make_app(bridge.hub, launch.app.render.avatar), cfg.host, cfg.port, tls)
-    url = page_url(cfg.host, port, tls is not None)
-    (launch.run.run_dir / URL_FILE).write_text(url + "\n")
+    app = make_app(bridge.hub, cfg.host, launch.token, launch.app.render.avatar)
+    runner, port = await start_server(app, cfg.host, cfg.port, tls)
+    url = page_url(cfg.host, port, tls is not None, launch.token)
+    write_text_atomic(launch.run.run_dir / URL_FILE, url + "\n")
     log.info("serving %s", url)
     next_beat = next_counters = 0.0
     try:
@@ -266,12 +269,13 @@ async def serve(launch: DashboardLaunch, supervisor: SupervisorWatch) -> None:
         bridge.close()
 
 
-def page_url(host: str, port: int, tls: bool = False) -> str:
-    """The address to open; a wildcard bind is opened through this machine's loopback."""
+def page_url(host: str, port: int, tls: bool = False, token: str | None = None) -> str:
+    """The address to open (with the dashboard's token, if it has one); a wildcard bind is opened through this
+    machine's loopback."""
     shown = {"0.0.0.0": "127.0.0.1", "::": "[::1]", "": "127.0.0.1"}.get(host, host)
     if ":" in shown and not shown.startswith("["):
         shown = f"[{shown}]"
-    return f"{'https' if tls else 'http'}://{shown}:{port}/"
+    return f"{'https' if tls else 'http'}://{shown}:{port}/" + (f"?token={token}" if token else "")
 
 
 def dashboard_main(launch: DashboardLaunch) -> None:

@@ -23,6 +23,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from agent.dashboard.access import access_middleware
 from agent.dashboard.events import BINARY_HEADER, BINARY_MIC, Event
 
 log = logging.getLogger(__name__)
@@ -281,11 +282,15 @@ def same_origin(request: web.Request) -> bool:
     return origin is None or urlsplit(origin).netloc == request.host
 
 
-def make_app(hub: Hub, avatar: str | None = None) -> web.Application:
-    """The dashboard's routes; `avatar` is the user's rig the page draws in render.mode browser (None: ours)."""
+def make_app(
+    hub: Hub, host: str = "127.0.0.1", token: str | None = None, avatar: str | Path | None = None
+) -> web.Application:
+    """The page, its files, its state and its WebSocket, for requests that name `host` (agent.dashboard.access;
+    with `token`, only for requests that carry it); `avatar` is the user's rig the page draws in render.mode browser
+    (None: ours)."""
     from agent.dashboard.avatar_file import AvatarFiles
 
-    app = web.Application()
+    app = web.Application(middlewares=[access_middleware(host, token)])
     app[AVATAR_FILES] = AvatarFiles(avatar)
 
     async def index(_request: web.Request) -> web.FileResponse:

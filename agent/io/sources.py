@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from ecas.core.audio_file import load_audio
+from ecas.core.audio_file import AudioStream
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 
 
@@ -34,8 +34,8 @@ class ReplaySource:
         self.index = 0
 
     @classmethod
-    def from_file(cls, path: str, tail_silence_s: float) -> ReplaySource:
-        return cls(load_audio(path, SAMPLE_RATE_HZ), tail_silence_s)
+    def from_file(cls, path: str, tail_silence_s: float) -> StreamedReplaySource:
+        return StreamedReplaySource(path, tail_silence_s)
 
     @classmethod
     def silence(cls, duration_s: float) -> ReplaySource:
@@ -52,6 +52,47 @@ class ReplaySource:
 
     def close(self) -> None:
         pass
+
+
+class StreamedReplaySource:
+    """A recording decoded as it is replayed (`AudioStream`), so an hour of it takes no more memory than a minute;
+    the same steps as `ReplaySource` (the last one zero-padded, then `tail_silence_s` of silence)."""
+
+    paced = False
+
+    def __init__(self, path: str, tail_silence_s: float):
+        self.stream = AudioStream(path, SAMPLE_RATE_HZ)
+        self.tail_steps = 0
+        self.tail_samples = int(round(tail_silence_s * SAMPLE_RATE_HZ))
+        self.pending = np.zeros(0, np.float32)
+
+    @property
+    def exhausted(self) -> bool:
+        self._fill()
+        return self.stream.done and len(self.pending) == 0 and self.tail_samples <= 0
+
+    def _fill(self) -> None:
+        while len(self.pending) < STEP_SAMPLES and not self.stream.done:
+            block = self.stream.read()
+            if block is not None:
+                self.pending = np.concatenate([self.pending, block])
+        if self.stream.done and 0 < len(self.pending) < STEP_SAMPLES:  # the last step, padded with the tail
+            take = min(self.tail_samples, STEP_SAMPLES - len(self.pending))
+            self.pending = np.concatenate([self.pending, np.zeros(take, np.float32)])
+            self.tail_samples -= take
+            if len(self.pending) < STEP_SAMPLES:
+                self.pending = np.concatenate([self.pending, np.zeros(STEP_SAMPLES - len(self.pending), np.float32)])
+
+    def next_block(self, timeout_s: float) -> tuple[np.ndarray, int | None] | None:
+        self._fill()
+        if len(self.pending) >= STEP_SAMPLES:
+            block, self.pending = self.pending[:STEP_SAMPLES], self.pending[STEP_SAMPLES:]
+            return block, None
+        self.tail_samples -= STEP_SAMPLES  # the stream is over: a step of the tail's silence
+        return np.zeros(STEP_SAMPLES, np.float32), None
+
+    def close(self) -> None:
+        self.stream.close()
 
 
 def _sounddevice():

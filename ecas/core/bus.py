@@ -9,6 +9,7 @@ and frames it could not decode; a bad frame is logged and skipped.
 from __future__ import annotations
 
 import collections
+import ipaddress
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -90,6 +91,28 @@ def stage_address(stage: str, bus: BusConfig, ipc_dir: Path) -> str:
 def bus_addresses(bus: BusConfig, ipc_dir: Path) -> dict[str, str]:
     """The address of every process that publishes: each stage, the supervisor and the dashboard."""
     return {name: stage_address(name, bus, ipc_dir) for name in (*STAGES, "supervisor", "dashboard")}
+
+
+def beyond_loopback(address: str) -> bool:
+    """True for a tcp address other machines can reach (a wildcard, a name, a non-loopback IP); an ipc socket is
+    a file in the run's private directory."""
+    if not address.startswith("tcp://"):
+        return False
+    host = address[len("tcp://") :].rpartition(":")[0].strip("[]")
+    if host == "localhost":
+        return False
+    try:
+        return not ipaddress.ip_address(host).is_loopback
+    except ValueError:  # "*", a host or interface name
+        return True
+
+
+def address_option(name: str, bus: BusConfig) -> str:
+    """The option that decides where `name` listens (an endpoint on `bus.host` was given a free port from it)."""
+    endpoint = bus.endpoints.get(name)
+    if endpoint is None or endpoint[len("tcp://") :].rpartition(":")[0] == bus.host:
+        return "bus.host"
+    return f"bus.endpoints.{name}"
 
 
 class Publisher:

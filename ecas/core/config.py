@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import stat
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -183,12 +184,20 @@ def _file_str(loader: _FileLoader, node: yaml.ScalarNode) -> FileStr:
 
 _FileLoader.add_constructor("tag:yaml.org,2002:str", _file_str)
 yaml.SafeDumper.add_representer(FileStr, yaml.representer.SafeRepresenter.represent_str)
+MAX_CONFIG_BYTES = 16_000_000
 
 
 def load_yaml(path: Path) -> dict:
-    """A config file's tree; its strings are FileStr, so its relative paths are relative to its directory."""
+    """A config file's tree; its strings are FileStr, so its relative paths are relative to its directory.
+    Only a regular file is read: a named pipe or a device is refused before it is opened (a pipe with no writer
+    would block forever), and a file beyond MAX_CONFIG_BYTES is not read."""
     loader = type("Loader", (_FileLoader,), {"base_dir": Path(path).absolute().parent})
     try:
+        mode = Path(path).stat().st_mode
+        if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            raise ConfigError(f"{path}: is not a regular file (a named pipe or a device?); give a YAML file")
+        if Path(path).stat().st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{path}: larger than {MAX_CONFIG_BYTES // 1_000_000} MB; not a config file")
         tree = yaml.load(Path(path).read_text(), Loader=loader)
     except FileNotFoundError:
         raise ConfigError(f"config file not found: {path}") from None

@@ -16,8 +16,6 @@ The skinning transform of joint j is ``G_j @ [I | -rest_j]`` (see ``skinning_tra
 
 from __future__ import annotations
 
-import pickle
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +24,7 @@ import torch
 
 from ecas.core.body import NUM_JOINTS
 from ecas.core.errors import DataError
+from gesture.body.model_file import ModelFileError, read_model_file
 from gesture.body.rotation import axis_angle_to_matrix
 
 _BODY_NAMES = (
@@ -179,17 +178,14 @@ class Skeleton:
 
 
 def read_smplx_file(path: Path) -> dict:
-    """The arrays of an SMPL-X-format model file (.npz, or the .pkl release); SkeletonError if unreadable."""
+    """The arrays of an SMPL-X-format model file (.npz, or the .pkl release), read without running any code it
+    holds (`gesture.body.model_file`); SkeletonError if unreadable."""
     if not path.is_file():
         raise SkeletonError(path, "SMPL-X model file not found")
     try:
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=True) as data:
-                return {k: data[k] for k in data.files}
-        with path.open("rb") as f:
-            return dict(pickle.load(f, encoding="latin1"))
-    except (OSError, ValueError, pickle.UnpicklingError, EOFError, zipfile.BadZipFile) as err:
-        raise SkeletonError(path, f"cannot read SMPL-X model ({err})") from err
+        return read_model_file(path)
+    except ModelFileError as err:
+        raise SkeletonError(path, f"cannot read SMPL-X model: {err}") from None
 
 
 def _model_array(model: dict, key: str, path) -> np.ndarray:

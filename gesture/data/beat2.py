@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import csv
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -150,23 +152,26 @@ def read_motion(path: Path | str, gesture_layer: bool = False) -> Motion:
     if not path.is_file():
         raise DataError(path, "motion file not found")
     try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise DataError(path, f"not a readable npz ({err})") from err
-    with data:
-        key = GESTURE_POSES_KEY if gesture_layer and GESTURE_POSES_KEY in data.files else "poses"
-        poses = _array(data, key, path)
-        trans = _array(data, "trans", path)
-        expressions = _array(data, "expressions", path)
-        betas = _array(data, "betas", path) if "betas" in data.files else np.zeros(300)
-        fps = _fps_of(data, path)
+        with np.load(path, allow_pickle=False) as data:
+            key = GESTURE_POSES_KEY if gesture_layer and GESTURE_POSES_KEY in data.files else "poses"
+            poses = _array(data, key, path)
+            trans = _array(data, "trans", path)
+            expressions = _array(data, "expressions", path)
+            betas = _array(data, "betas", path) if "betas" in data.files else np.zeros(300)
+            fps = _fps_of(data, path)
+    except DataError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:  # truncated: BadZipFile
+        raise DataError(path, f"not a readable npz ({' '.join(str(err).split())})") from None
     t = len(poses)
     if poses.ndim != 2 or poses.shape[1] != NUM_JOINTS * 3:
         raise DataError(path, f"'{key}' must be (T, {NUM_JOINTS * 3}), got {poses.shape}")
     if trans.shape != (t, 3):
         raise DataError(path, f"'trans' must be ({t}, 3) to match '{key}', got {trans.shape}")
     if expressions.shape != (t, NUM_EXPRESSIONS):
-        raise DataError(path, f"'expressions' must be ({t}, {NUM_EXPRESSIONS}) to match '{key}', got {expressions.shape}")
+        raise DataError(
+            path, f"'expressions' must be ({t}, {NUM_EXPRESSIONS}) to match '{key}', got {expressions.shape}"
+        )
     if t < 2:
         raise DataError(path, f"motion has {t} frame(s); need at least 2")
     if fps <= 0:

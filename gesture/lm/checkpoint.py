@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 from pathlib import Path
 
 import torch
@@ -18,6 +19,10 @@ from gesture.lm.model import GestureLM
 WEIGHTS_FILE = "lm.safetensors"
 META_FILE = "lm.json"
 CHECKPOINT_PREFIXES = ("module.", "m.")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is unreadable or holds something else than it should; the message is one line."""
 
 
 def save_lm(model: GestureLM, directory: Path, **progress: int) -> None:
@@ -72,5 +77,16 @@ def save_train_state(
 
 
 def load_train_state(directory: Path) -> dict | None:
+    """The optimizer, scheduler, RNG and losses of a resumed run, or None. `weights_only=True`: the file may hold
+    tensors, numbers, strings and containers only, so a planted file cannot run code (CheckpointError instead)."""
     path = Path(directory) / "train_state.pt"
-    return torch.load(path, weights_only=False) if path.exists() else None
+    if not path.exists():
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as err:
+        first = next((line for line in str(err).splitlines() if line.strip()), type(err).__name__)
+        raise CheckpointError(f"{path}: not a training state this project wrote ({first.strip()})") from None
+    if not isinstance(state, dict) or not {"optimizer", "scheduler", "generator", "losses"} <= state.keys():
+        raise CheckpointError(f"{path}: not a training state this project wrote (its keys are not ours)")
+    return state

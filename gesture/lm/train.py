@@ -22,7 +22,7 @@ import torch
 
 from ecas.core.config import ConfigError, build_dataclass, load_yaml
 from ecas.core.threads import limit_threads
-from gesture.lm.checkpoint import load_lm, load_train_state, save_lm, save_train_state
+from gesture.lm.checkpoint import CheckpointError, load_lm, load_train_state, save_lm, save_train_state
 from gesture.lm.config import LMConfig, LMFileConfig, LMTrainConfig
 from gesture.lm.data import LMBatch, LMDataset
 from gesture.lm.losses import contrastive_loss, level_weights, token_ce, voice_activity_bce
@@ -213,7 +213,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.data.is_dir() or not any(args.data.glob("*.npz")):
         return _usage_error(f"--data {args.data}: not a directory of npz recordings (ecas tokenize)")
     args.out.mkdir(parents=True, exist_ok=True)
-    train(file_cfg, args.data, args.out, args.codecs, args.epochs, progress=not args.no_progress)
+    try:
+        train(file_cfg, args.data, args.out, args.codecs, args.epochs, progress=not args.no_progress)
+    except CheckpointError as err:
+        return _usage_error(str(err))
     return 0
 
 
