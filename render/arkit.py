@@ -1,7 +1,7 @@
 """The agent's face as Apple ARKit's 52 blendshape weights (`docs/arkit.md` has the table).
 
 What our face coefficients mean: the 100 expression coefficients psi are FLAME's, but FLAME's basis is not shipped,
-so the project gives them meaning through `render.avatar.EXPRESSION_MAP`, a linear map onto six semantic shapes
+so the project gives them meaning through `render.expressions.EXPRESSION_MAP`, a linear map onto six semantic shapes
 (smile, brow_raise, blink, mouth_wide, pucker, lips_apart). The synthetic conversations the face codec was trained
 on (`gesture.synth.face`) write exactly these six patterns, and the built-in avatar shows exactly these six, so the
 six activations are the face's meaning; everything else in psi is invisible. The jaw is joint 22's rotation: it
@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ecas.core.body import NUM_EXPRESSIONS
-from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+from render.expressions import EXPRESSION_MAP, SEMANTIC_SHAPES
 
 # Apple's order: ARFaceAnchor.BlendShapeLocation as its documentation lists them (eyes, mouth and jaw, brows,
 # cheeks, nose, tongue).

@@ -26,8 +26,8 @@ import numpy as np
 from ecas.core.body import JAW_JOINT, NUM_JOINTS
 from gesture.body.skeleton import JOINT_NAMES
 from render.arkit import ARKIT_INDEX, ARKIT_NAMES, FACE_RULES, arkit_weights
-from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
 from render.body_model import BodyModel
+from render.expressions import EXPRESSION_MAP, SEMANTIC_SHAPES
 
 GLB_MAGIC, GLB_VERSION = b"glTF", 2
 CHUNK_JSON, CHUNK_BIN = 0x4E4F534A, 0x004E4942

@@ -13,7 +13,7 @@ from gesture.layers import build_layer
 from gesture.layers.face import BASELINE_S, BLINK_HEIGHT, BLINK_MIN_GAP_S, FaceLayer, FaceOptions
 from gesture.synth.face import BLINK_ROW, BLINKS_PER_MINUTE, BROW_ROW, expressions_from_activations
 from gesture.synth.tracks import add_bump
-from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+from render.expressions import EXPRESSION_MAP, SEMANTIC_SHAPES
 from tests.lm_fixtures import tiny_codecs, tiny_lm
 
 torch.set_num_threads(1)

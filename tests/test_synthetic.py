@@ -258,7 +258,7 @@ def test_listening_moves_less_than_speaking(session):
 
 
 def test_face_blinks_smiles_and_jaw_follows_speech(session):
-    from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+    from render.expressions import EXPRESSION_MAP, SEMANTIC_SHAPES
 
     act = session["expressions"].astype(np.float64) @ EXPRESSION_MAP.T  # (T, 6) render activations
     blink = act[:, SEMANTIC_SHAPES.index("blink")]
@@ -270,7 +270,7 @@ def test_face_blinks_smiles_and_jaw_follows_speech(session):
 
 
 def test_face_patterns_agree_with_the_renderer():
-    from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+    from render.expressions import EXPRESSION_MAP, SEMANTIC_SHAPES
 
     for name, psi in FACE_PATTERNS.items():
         act = EXPRESSION_MAP @ psi

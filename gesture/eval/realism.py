@@ -313,7 +313,7 @@ def height_histogram(joints: np.ndarray) -> np.ndarray:
 
 def face_activations(expressions: np.ndarray) -> dict[str, np.ndarray]:
     """(T, 100) FLAME psi -> the avatar's activations of the shapes in FACE_EVENTS (render.avatar's map)."""
-    from render.avatar import EXPRESSION_MAP, SEMANTIC_SHAPES
+    from render.expressions import EXPRESSION_MAP, SEMANTIC_SHAPES
 
     return {name: expressions @ EXPRESSION_MAP[SEMANTIC_SHAPES.index(name)] for name in FACE_EVENTS}
 

@@ -17,9 +17,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ecas.core.body import NUM_JOINTS
-from gesture.body.rotation import axis_angle_to_quaternion, quaternion_to_axis_angle
 from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
 from gesture.layers.registry import register
+from gesture.layers.rotations import axis_angle_to_quaternion, quaternion_to_axis_angle
 
 TORSO_AND_LEG_JOINTS = tuple(range(18))  # pelvis, legs, spine, neck, collars, head, shoulders
 

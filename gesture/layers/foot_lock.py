@@ -17,15 +17,18 @@ hips, knees and ankles change. The decoded contacts stay on through most steps, 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ecas.core.body import CONTACT_JOINTS, NUM_JOINTS
-from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
-from gesture.body.skeleton import Skeleton
 from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
 from gesture.layers.micro_motion import SpeakingTrack
 from gesture.layers.registry import register
+
+if TYPE_CHECKING:  # imported where it is built: it loads torch
+    from gesture.body.skeleton import Skeleton
+from gesture.layers.rotations import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 
 CONTACT_ON = 0.5  # a decoded contact above this plants the ankle (the codec's contacts are 0 or 1 in its data)
 LEGS = ((1, 4, 7), (2, 5, 8))  # (hip, knee, ankle): left, right
@@ -196,7 +199,9 @@ class FootLock:
 
 @register("foot_lock", FootLockOptions)
 def build(options: FootLockOptions, env: LayerEnv) -> FootLock:
-    """On the built-in skeleton, the training data's."""
+    """On the built-in skeleton, the training data's (imported here: it loads torch)."""
+    from gesture.body.skeleton import Skeleton
+
     return FootLock(
         Skeleton.default(), env.fps, options.release_m, options.release_speaking_m, options.blend_s, options.step_s
     )

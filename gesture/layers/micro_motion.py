@@ -26,11 +26,11 @@ from dataclasses import replace as replace_fields
 import numpy as np
 
 from ecas.core.body import COLLARS, NECK_HEAD
-from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
 from gesture.layers.fitted import MicroNoise, micro_fit
 from gesture.layers.reflex import PostureReflexes
 from gesture.layers.registry import register
+from gesture.layers.rotations import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 from gesture.layers.signal import (
     NOISE_TRUNCATE_SIGMAS,
     log_normal_gate,

@@ -16,10 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 from ecas.core.body import NECK_HEAD, SPINE
-from gesture.body.rotation import axis_angle_to_matrix_np, matrix_to_axis_angle_np
+from gesture.layers.rotations import axis_angle_to_matrix_np, matrix_to_axis_angle_np
 
 PELVIS = 0
 
@@ -82,6 +81,8 @@ class CourseFilter:
         flips = np.sign((q * np.concatenate([previous, q[:-1]])).sum(-1))  # (F,) each against the frame before
         q = q * np.cumprod(np.where(flips == 0, 1.0, flips))[:, None]
         start = q[0] if self.state is None else self.state
+        from scipy.signal import lfilter  # on first use: the config's validation imports this module
+
         course, _ = lfilter([self.alpha], [1.0, self.alpha - 1.0], q, axis=0, zi=((1 - self.alpha) * start)[None])
         self.state, self.last = course[-1], q[-1]
         return _rotation(course)

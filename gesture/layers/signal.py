@@ -5,8 +5,6 @@ the log-normal gate of the micro-motion, and the minimum-jerk bump of a blink or
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import butter, sosfilt
-from scipy.special import ndtr
 
 NOISE_TRUNCATE_SIGMAS = 4.0  # scipy's gaussian_filter1d default: the kernel ends this many sigmas out
 LOWPASS_ORDER = 2  # real joint rotations fall off as a 2nd-order low-pass above their corner, not as a Gaussian
@@ -21,6 +19,8 @@ def noise_sigma_frames(cutoff_hz: float, fps: float) -> float:
 def lowpass_sos(cutoff_hz: float, fps: float, order: int = LOWPASS_ORDER) -> np.ndarray:
     """The micro-motion noise filter: a Butterworth low-pass of ``order`` at ``cutoff_hz``, as second-order
     sections."""
+    from scipy.signal import butter  # scipy.signal on first use: the config's validation imports this module
+
     return butter(order, cutoff_hz, fs=fps, output="sos")
 
 
@@ -30,6 +30,8 @@ def lowpass_warmup_frames(cutoff_hz: float, fps: float) -> int:
 
 def lowpass_gain(sos: np.ndarray, fps: float, cutoff_hz: float) -> float:
     """The filter's output std for unit white noise (its impulse response's energy, square-rooted)."""
+    from scipy.signal import sosfilt
+
     impulse = np.zeros(lowpass_warmup_frames(cutoff_hz, fps))
     impulse[0] = 1.0
     return float(np.sqrt(np.square(sosfilt(sos, impulse)).sum()))
@@ -37,6 +39,8 @@ def lowpass_gain(sos: np.ndarray, fps: float, cutoff_hz: float) -> float:
 
 def gate_rms(log_std: np.ndarray | float, cap: float) -> np.ndarray:
     """The RMS of min(exp(s Z - s^2), cap) for a standard normal Z and log std s."""
+    from scipy.special import ndtr
+
     z_cap = (np.log(cap) + np.square(log_std)) / log_std
     return np.sqrt(ndtr(z_cap - 2 * np.asarray(log_std)) + cap**2 * ndtr(-z_cap))
 

@@ -22,9 +22,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ecas.core.body import ELBOWS, NUM_JOINTS, WRISTS
-from gesture.body.rotation import axis_angle_to_quaternion, quaternion_to_axis_angle
 from gesture.layers.base import LayerEnv, LayerOptionError, Motion, StepContext
 from gesture.layers.registry import register
+from gesture.layers.rotations import axis_angle_to_quaternion, quaternion_to_axis_angle
 
 
 @dataclass(frozen=True)
