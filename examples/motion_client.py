@@ -29,6 +29,7 @@ from render.motion_wire import MotionPacket, decode  # noqa: E402
 BINARY_MOTION = 4  # agent.dashboard.events.BINARY_MOTION
 HEADER_BYTES = 8  # agent.dashboard.events.BINARY_HEADER: u8 kind, pad, u16 frame index, u32 step
 ENDED = ("ended", "stopped")
+AFTER_END_S = 1.0  # how long to wait for late steps once the run has ended
 
 
 def websocket_url(page_url: str) -> str:
@@ -57,17 +58,21 @@ async def read_stream(
         await ws.send_str(json.dumps({"type": "motion", "enabled": True}))
         if start:
             await ws.send_str(json.dumps({"type": "control", "command": "start"}))
-        async for msg in ws:
+        ended = False
+        while max_steps is None or len(packets) < max_steps:
+            try:  # the last steps travel on another topic than the run's end and may follow it: wait a moment
+                msg = await ws.receive(timeout=AFTER_END_S if ended else None)
+            except asyncio.TimeoutError:
+                break
+            if msg.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.ERROR):
+                break
             if msg.type == aiohttp.WSMsgType.BINARY and msg.data[0] == BINARY_MOTION:
                 packets.append(decode(memoryview(msg.data)[HEADER_BYTES:]))
                 if not quiet:
                     print(describe(packets[-1]), flush=True)
-                if max_steps is not None and len(packets) >= max_steps:
-                    break
             elif msg.type == aiohttp.WSMsgType.TEXT:
                 event = json.loads(msg.data)
-                if event.get("type") == "run" and event.get("phase") in ENDED:
-                    break
+                ended = ended or (event.get("type") == "run" and event.get("phase") in ENDED)
     return packets
 
 
