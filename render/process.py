@@ -27,7 +27,7 @@ from ecas.core.messages import DialogueStep, GestureStep, Message, RenderFrame
 from ecas.core.timing import FRAME_SAMPLES, FRAMES_PER_STEP, NS_PER_MS
 from render.config import RenderConfig
 from render.mp4 import BackgroundMp4Writer, Mp4WriteError, Mp4Writer, mix_conversation
-from render.view import AvatarView, load_body
+from render.view import AvatarView, open_view
 
 log = logging.getLogger(__name__)
 
@@ -108,19 +108,7 @@ class RenderComponent:
             self._open_view_and_mp4(cfg, run)
 
     def _open_view_and_mp4(self, cfg: RenderConfig, run: RunContext) -> None:
-        betas = np.asarray(cfg.betas, dtype=np.float64) if cfg.betas else None
-        self.view = AvatarView(
-            load_body(cfg.body_model),
-            self.width,
-            self.height,
-            camera=cfg.camera,
-            platform=cfg.platform,
-            msaa_samples=cfg.msaa_samples,
-            camera_smoothing=cfg.camera_smoothing,
-            betas=betas,
-        )
-        self.view.frame(np.zeros((55, 3)), np.array([0.0, 1.3, 0.0]), np.zeros(100))  # warm-up: GL upload
-        self.view.reset()
+        self.view = open_view(cfg, self.width, self.height)
         if cfg.mp4_path:
             writer = BackgroundMp4Writer(
                 Mp4Writer(

@@ -6,8 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ecas.core.body import NUM_EXPRESSIONS, NUM_JOINTS
 from render.avatar import build_avatar
 from render.body_model import BodyModel, load_smplx_model
+from render.config import RenderConfig
 from render.lbs import Skinner
 from render.renderer import CameraRig, MeshRenderer
 
@@ -69,3 +71,21 @@ class AvatarView:
 
     def close(self) -> None:
         self.renderer.close()
+
+
+def open_view(cfg: RenderConfig, width: int, height: int) -> AvatarView:
+    """The avatar view a `render:` section describes, its GL buffers uploaded by one warm-up frame."""
+    betas = np.asarray(cfg.betas, dtype=np.float64) if cfg.betas else None
+    view = AvatarView(
+        load_body(cfg.body_model),
+        width,
+        height,
+        camera=cfg.camera,
+        platform=cfg.platform,
+        msaa_samples=cfg.msaa_samples,
+        camera_smoothing=cfg.camera_smoothing,
+        betas=betas,
+    )
+    view.frame(np.zeros((NUM_JOINTS, 3)), np.array([0.0, 1.3, 0.0]), np.zeros(NUM_EXPRESSIONS))
+    view.reset()
+    return view

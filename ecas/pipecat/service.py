@@ -244,22 +244,9 @@ class AvatarService(FrameProcessor):
             self._engine.reset()
 
     def _open_view(self) -> None:
-        from render.view import AvatarView, load_body
+        from render.view import open_view
 
-        cfg = self._render_cfg
-        betas = np.asarray(cfg.betas, dtype=np.float64) if cfg.betas else None
-        self._view = AvatarView(
-            load_body(cfg.body_model),
-            self.width,
-            self.height,
-            camera=cfg.camera,
-            platform=cfg.platform,
-            msaa_samples=cfg.msaa_samples,
-            camera_smoothing=cfg.camera_smoothing,
-            betas=betas,
-        )
-        self._view.frame(np.zeros((55, 3)), np.array([0.0, 1.3, 0.0]), np.zeros(100))  # warm-up: GL upload
-        self._view.reset()
+        self._view = open_view(self._render_cfg, self.width, self.height)
 
     async def _finish(self) -> None:
         """End of stream: every waiting step leaves (the last padded), then its markers, then the engine closes."""
