@@ -26,11 +26,11 @@ import torch
 from ecas.core.paths import DEFAULT_CONFIG
 from ecas.core.threads import limit_threads
 from ecas.core.timing import STEP_HZ
-from gesture.eval.suite import REPO, default_gesture_config, ensure_sessions, load_heldout, run_generator
+from gesture.eval.suite import default_gesture_config, ensure_sessions, load_heldout, run_generator
 from gesture.lm.codecs import load_codecs
 
 VALIDATION_SEED = 1
-DEFAULT_ROOT = REPO / "runs" / "validation_seed1"
+DEFAULT_ROOT = Path("runs") / "validation_seed1"  # under the working directory, as every run
 
 
 def repeat_rates(tokens: np.ndarray) -> np.ndarray:
