@@ -158,6 +158,14 @@ def with_dialogue_spec(app: AppConfig) -> AppConfig:
     return replace(app, gesture=replace(app.gesture, dialogue_spec=condition_spec(app.dialogue)))
 
 
+def without_relaying_renderer(app: AppConfig) -> AppConfig:
+    """render.mode browser without an MP4: the page draws the avatar from the gesture stage's motion, so a render
+    stage would draw nothing and only relay messages (about 0.09 of a core); the run leaves it out."""
+    if app.render.mode != "browser" or app.render.mp4_path or "render" in app.run.components:
+        return app
+    return replace(app, run=replace(app.run, stages=tuple(s for s in app.run.stages if s != "render")))
+
+
 def check_inputs(app: AppConfig) -> None:
     """Fail before any process starts, with one line, on a bad recording or a missing microphone."""
     if "io" not in app.run.local_stages:
@@ -270,7 +278,7 @@ def main(argv=None) -> int:
         check_report_dir(app)
         if args.character is not None:
             app = with_character(app, args.character)
-        app = with_dialogue_spec(app)
+        app = without_relaying_renderer(with_dialogue_spec(app))
         check_inputs(app)
         check_checkpoints(app)
         check_before_start(app)

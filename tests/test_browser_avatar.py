@@ -180,3 +180,16 @@ def test_the_pages_three_js_retargeting_equals_the_numpy_reference(tmp_path):
         expected = retarget(load_rig(path), poses, trans)
         errors = [np.linalg.norm(np.array(p) - expected[int(n)][:3, 3]) for n, p in positions.items()]
         assert len(errors) >= 54 and max(errors) < 1e-4, (kind, max(errors))
+
+
+def test_browser_mode_without_an_mp4_runs_no_render_stage():
+    from agent.sections import load_app_config
+    from ecas.core.paths import DEFAULT_CONFIG
+    from ecas.launch import without_relaying_renderer
+
+    def stages(*overrides):
+        return without_relaying_renderer(load_app_config(DEFAULT_CONFIG, list(overrides))).run.stages
+
+    assert stages() == ("io", "dialogue", "gesture", "render")  # server mode draws the frames
+    assert stages("render.mode=browser") == ("io", "dialogue", "gesture")  # the page draws them
+    assert stages("render.mode=browser", "render.mp4_path=out.mp4") == ("io", "dialogue", "gesture", "render")
