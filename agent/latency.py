@@ -49,7 +49,8 @@ class StepLatency:
 
 
 def to_reference_clock(t_ns: int, stage: str, offsets_ns: dict[str, int]) -> int:
-    """A stage's monotonic time `t_ns` on the supervisor's clock (`offsets_ns`: stage clock minus supervisor's)."""
+    """A stage's monotonic time `t_ns` on the reference clock of `offsets_ns` (stage clock minus the reference's:
+    the supervisor's for the report, the dashboard's for its pages)."""
     return t_ns - offsets_ns.get(stage, 0)
 
 

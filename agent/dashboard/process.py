@@ -35,7 +35,7 @@ from agent.dashboard.events import (
     pcm_int16,
     vad_event,
 )
-from agent.latency import DISPLAY_KEY
+from agent.latency import DISPLAY_KEY, to_reference_clock
 from agent.process import SupervisorWatch, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
@@ -172,7 +172,7 @@ class DashboardBridge:
         """A step's motion to the pages and clients that asked for it, its times on this host's clock."""
         self.motion_steps += 1
         offsets = self.clock.offsets_ns()
-        origin = msg.t_origin_ns - offsets.get(self.pipeline[0], 0) if msg.t_origin_ns else 0
+        origin = to_reference_clock(msg.t_origin_ns, self.pipeline[0], offsets) if msg.t_origin_ns else 0
         if origin:
             self.origins[msg.step] = origin
             while len(self.origins) > ORIGINS_KEPT:
@@ -185,7 +185,7 @@ class DashboardBridge:
             msg.trans,
             msg.expressions,
             t_origin_ns=origin,
-            t_motion_ns=msg.stamps.get("gesture", msg.t_ns) - offsets.get("gesture", 0),
+            t_motion_ns=to_reference_clock(msg.stamps.get("gesture", msg.t_ns), "gesture", offsets),
         )
         self.hub.broadcast_motion(pack_binary(BINARY_MOTION, msg.step, 0, encode(packet)))
 
