@@ -138,6 +138,19 @@ def test_latency_splits_per_stage_and_uses_the_second_frame():
     assert "end to end" in format_table(summary)
 
 
+def test_the_recorder_keeps_every_step_past_its_first_allocation():
+    pipeline = ("io", "gesture")
+    rec = LatencyRecorder(pipeline)
+    ms = 1_000_000
+    for step in range(3000):  # past the table's first 1024 rows: it doubles twice
+        stamps = {"io": ms, "gesture.in": 2 * ms, "gesture": (3 + step % 7) * ms}
+        rec.add(Metrics(step=step, t_origin_ns=0, stamps=stamps, values={}), {})
+    assert rec.steps == list(range(3000))
+    assert rec.e2e_ms == [3.0 + s % 7 for s in range(3000)]
+    assert rec.segments_ms["gesture"]["compute"][-1] == (3 + 2999 % 7) - 2  # gesture minus gesture.in
+    assert rec.summary({}, {})["steps_measured"] == 3000
+
+
 def test_the_report_and_the_dashboard_measure_a_step_alike():
     pipeline = ("io", "dialogue", "gesture", "render")
     ms = 1_000_000
