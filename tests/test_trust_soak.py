@@ -4,7 +4,7 @@ The user's side is the bundled recording (7.1 s) followed by 8 s of silence for 
 over, for `ECAS_SOAK_S` seconds of audio (default 3600). Every `SAMPLE_S` the test reads each stage's resident
 memory (VmRSS); the curve is written to `<report>/memory.json` (docs/soak.md shows one). After the warm-up (the
 first `WARM_UP_SHARE` of the run), the median of the last quarter of the samples may exceed that of the
-quarter after warm-up by `FLAT_MB` at most. Run it alone: `nice -n 10 python -m pytest -m slow
+quarter after warm-up by `FLAT_MB` at most; the supervisor's too. Run it alone: `nice -n 10 python -m pytest -m slow
 tests/test_trust_soak.py` (an hour of audio takes 1-2 h of wall time on a loaded 2-core machine).
 """
 
@@ -96,7 +96,7 @@ def test_an_hour_offline_keeps_every_stage_flat(tmp_path):
     (report / "memory.json").write_text(curve.read_text())
     assert code == 0, output[-3000:]
     assert len(samples) >= 8, samples
-    for stage in STAGES:
+    for stage in ("supervisor", *STAGES):  # the launcher keeps every step's latency: 8 bytes a value
         start_mb, end_mb = flatness(samples, stage)
         assert end_mb - start_mb <= FLAT_MB, f"{stage}: {start_mb:.0f} MB -> {end_mb:.0f} MB after warm-up"
     assert leftovers(proc.pid) == []
