@@ -1,8 +1,8 @@
 """The user's own rig: a VRM (0.x or 1.0) or a Mixamo-rigged GLB, driven by SMPL-X motion (`docs/avatar.md`).
 
 `load_rig(path) -> Rig` reads the file's humanoid bones (VRM's humanoid extension, or Mixamo's bone names), maps
-SMPL-X's joints onto them (`HUMANOID`), and its face: ARKit-named morph targets where it has them, else VRM
-expressions, as a table from the 52 ARKit weights to its morph target weights.
+SMPL-X's joints onto them (`HUMANOID`), and its face: ARKit-named morph targets where it has them, else (a VRM)
+its preset expressions, set by the page through @pixiv/three-vrm from the 52 ARKit weights (`VRM_EXPRESSIONS`).
 
 Retargeting (world-space, with rest-pose correction). SMPL-X's rest pose is a T-pose whose joint frames are all
 aligned with the world, so a joint's global rotation G_j is also its rotation away from rest, in world axes. A

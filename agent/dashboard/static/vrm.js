@@ -87,7 +87,7 @@ export class VrmDriver {
     this.vrm.update(dt);
   }
 
-  /** Test hook: the expression manager's values, the look-at angles, the spring joints (world, and in the head's
+  /** Test hook: the expression manager's values, the look-at angles and the eye's turn, the spring joints (world, and in the head's
    *  frame), the materials' types. */
   state() {
     const manager = this.vrm.expressionManager;
@@ -101,7 +101,10 @@ export class VrmDriver {
     });
     const materials = new Set();
     this.vrm.scene.traverse((o) => { if (o.isMesh) [].concat(o.material).forEach((m) => materials.add(m.isMToonMaterial ? "MToonMaterial" : m.type)); });
-    return {expressions, springs, materials: [...materials],
+    const eye = this.vrm.humanoid.getRawBoneNode("leftEye"), rest = this.vrm.humanoid.rawRestPose.leftEye?.rotation;
+    const eyeTurnDeg = eye && rest  // the left eye's turn away from its rest rotation (the look-at's doing)
+      ? 2 * Math.acos(Math.min(1, Math.abs(eye.quaternion.dot(this._q.fromArray(rest))))) * 180 / Math.PI : null;
+    return {expressions, springs, materials: [...materials], eyeTurnDeg,
             lookAt: this.vrm.lookAt ? {yaw: this.vrm.lookAt.yaw, pitch: this.vrm.lookAt.pitch} : null,
             meta: this.vrm.meta?.metaVersion ?? null};
   }
