@@ -116,6 +116,16 @@ def check_render_stage(app: AppConfig) -> None:
         raise ConfigError(str(err)) from None
 
 
+def check_browser_page(app: AppConfig) -> None:
+    """render.mode browser with the dashboard: the page's JavaScript (three.js, three-vrm) must be installed."""
+    if app.render.mode != "browser" or not app.dashboard.enabled:
+        return
+    from agent.dashboard.vendor import missing
+
+    if missing():
+        raise ConfigError(missing())
+
+
 def check_before_start(app: AppConfig) -> None:
     """Every check above, in a forked child: the checkpoints and their imports (torch, ~360 MB) stay out of the
     launcher, which lives as long as the run. ConfigError with the child's one line."""
@@ -147,6 +157,7 @@ def check_before_start(app: AppConfig) -> None:
 
 
 def _check_all(app: AppConfig) -> None:
+    check_browser_page(app)
     check_components(app)
     check_weight_form(app)
     check_gesture_stage(app)

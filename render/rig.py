@@ -1,8 +1,8 @@
 """The user's own rig: a VRM (0.x or 1.0) or a Mixamo-rigged GLB, driven by SMPL-X motion (`docs/avatar.md`).
 
 `load_rig(path) -> Rig` reads the file's humanoid bones (VRM's humanoid extension, or Mixamo's bone names), maps
-SMPL-X's joints onto them (`HUMANOID`), and its face: ARKit-named morph targets where it has them, else VRM
-expressions, as a table from the 52 ARKit weights to its morph target weights.
+SMPL-X's joints onto them (`HUMANOID`), and its face: ARKit-named morph targets where it has them, else (a VRM)
+its preset expressions, set by the page through @pixiv/three-vrm from the 52 ARKit weights (`VRM_EXPRESSIONS`).
 
 Retargeting (world-space, with rest-pose correction). SMPL-X's rest pose is a T-pose whose joint frames are all
 aligned with the world, so a joint's global rotation G_j is also its rotation away from rest, in world axes. A
@@ -113,24 +113,39 @@ def mixamo_names() -> dict[str, str]:
 MIXAMO = mixamo_names()
 MIXAMO_PREFIX = re.compile(r"^mixamorig\d*[:_]?")
 
-# ARKit weights -> VRM expressions: (expression, [(ARKit name, gain)]); 1.0 preset names, 0.x's in VRM0_PRESETS.
+# ARKit weights -> VRM 1.0 preset expressions (three-vrm names VRM 0.x's presets so too: joy -> happy, a -> aa, ...):
+# each is clip(sum of gain * ARKit weight, 0, 1). The blink is split so that each eye closes by its own weight:
+# blink = min(eyeBlinkLeft, eyeBlinkRight), blinkLeft / blinkRight = the rest of each eye (VRM_BLINK).
 VRM_EXPRESSIONS = (
-    ("blink", (("eyeBlinkLeft", 0.5), ("eyeBlinkRight", 0.5))),
-    ("happy", (("mouthSmileLeft", 0.5), ("mouthSmileRight", 0.5))),
-    ("aa", (("jawOpen", 1.0), ("mouthLowerDownLeft", 0.25), ("mouthLowerDownRight", 0.25))),
+    ("aa", (("jawOpen", 1.0),)),  # the mouth opened by the jaw
+    ("ih", (("mouthLowerDownLeft", 0.5), ("mouthLowerDownRight", 0.5))),  # lips apart, the teeth show
     ("ou", (("mouthPucker", 1.0),)),
     ("ee", (("mouthStretchLeft", 0.5), ("mouthStretchRight", 0.5))),
     ("oh", (("mouthFunnel", 1.0),)),
-    ("surprised", (("browInnerUp", 0.5),)),
+    ("happy", (("mouthSmileLeft", 0.5), ("mouthSmileRight", 0.5))),
+    ("sad", (("mouthFrownLeft", 0.5), ("mouthFrownRight", 0.5))),
     ("angry", (("browDownLeft", 0.5), ("browDownRight", 0.5))),
+    ("surprised", (("browInnerUp", 0.5),)),
 )
-VRM0_PRESETS = {"happy": "joy", "aa": "a", "ou": "u", "ee": "e", "oh": "o", "surprised": "surprised"}
+VRM_BLINK = ("eyeBlinkLeft", "eyeBlinkRight")
+
+
+def vrm_expression_weights(arkit: np.ndarray) -> dict[str, float]:
+    """(52,) ARKit weights -> VRM preset expression weights (the page sets these on three-vrm's expression
+    manager; docs/avatar.md has the table)."""
+    w = np.asarray(arkit, np.float64)
+    out = {name: float(np.clip(sum(g * w[ARKIT_INDEX[a]] for a, g in terms), 0, 1)) for name, terms in VRM_EXPRESSIONS}
+    left, right = (float(np.clip(w[ARKIT_INDEX[a]], 0, 1)) for a in VRM_BLINK)
+    out["blink"] = min(left, right)
+    out["blinkLeft"], out["blinkRight"] = left - out["blink"], right - out["blink"]
+    return out
 
 
 @dataclass(frozen=True)
 class Rig:
     """A loaded rig: `bones` maps SMPL-X joint index -> node index; `face` maps (mesh node, morph target) ->
-    [(ARKit index, gain)]; world rest transforms of every node."""
+    [(ARKit index, gain)] for morph targets named as ARKit's (a VRM without them is driven through its expressions,
+    `vrm_expression_weights`); world rest transforms of every node."""
 
     path: Path
     kind: str  # "vrm0" | "vrm1" | "mixamo" | "smplx"
@@ -155,7 +170,9 @@ class Rig:
         """What the page needs to drive the rig (JSON), driven bones parents first. Per bone: `k` (K_b, see the
         module docstring), `ancestor` (the position in this list of its nearest driven ancestor, -1: none) and
         `between` (the rest rotation from that ancestor's frame, or the world, to the bone's parent's frame), so
-        the parent's posed world rotation is W'_ancestor · between. Quaternions are (x, y, z, w)."""
+        the parent's posed world rotation is W'_ancestor · between; `normalized` (F C_b⁻¹ F⁻¹ = K_b W_b⁻¹: a VRM is
+        driven through three-vrm's normalized bones, whose rest is the identity in world axes, so the normalized
+        bone's world rotation is F G_j F⁻¹ · normalized, the same W'_b). Quaternions are (x, y, z, w)."""
         corrections = rest_corrections(self)
         frame = _yaw(self.yaw_deg)
         order = sorted(self.bones, key=lambda j: _depth(self.parents, self.bones[j]))
@@ -163,7 +180,8 @@ class Rig:
         bones = []
         for j in order:
             n = self.bones[j]
-            k = frame @ corrections[j].T @ frame.T @ _rotation(self.world[n])
+            normalized = frame @ corrections[j].T @ frame.T  # K_b W_b⁻¹: three-vrm's normalized bone, world-aligned
+            k = normalized @ _rotation(self.world[n])
             ancestor = self.parents[n]
             while ancestor >= 0 and ancestor not in position:
                 ancestor = self.parents[ancestor]
@@ -174,6 +192,7 @@ class Rig:
                     "node": int(n),
                     "joint": j,
                     "k": matrix_to_quaternion_np(k).tolist(),
+                    "normalized": matrix_to_quaternion_np(normalized).tolist(),
                     "ancestor": position.get(int(ancestor), -1),
                     "between": matrix_to_quaternion_np(between).tolist(),
                 }
@@ -197,7 +216,16 @@ class Rig:
                 "floor_trans_y": self.floor_trans_y,
             },
             "face": face,
+            "vrm": self._vrm_spec(),
         }
+
+    def _vrm_spec(self) -> dict | None:
+        """A VRM's expressions from the ARKit weights (VRM_EXPRESSIONS, VRM_BLINK), unless it has ARKit morphs."""
+        if self.kind not in ("vrm0", "vrm1"):
+            return None
+        expressions = [] if self.face else [[n, [[ARKIT_INDEX[a], g] for a, g in t]] for n, t in VRM_EXPRESSIONS]
+        blink = [] if self.face else [ARKIT_INDEX[a] for a in VRM_BLINK]
+        return {"expressions": expressions, "blink": blink}
 
 
 # ---------------------------------------------------------------- maths
@@ -330,31 +358,6 @@ def _arkit_face(doc: dict) -> dict[tuple[int, int], list[tuple[int, float]]]:
     return face
 
 
-def _vrm_face(doc: dict, kind: str) -> dict[tuple[int, int], list[tuple[int, float]]]:
-    """VRM expressions' morph target binds, each driven by the ARKit weights of VRM_EXPRESSIONS."""
-    binds: dict[str, list[tuple[int, int, float]]] = {}  # expression -> (node, target, weight 0-1)
-    if kind == "vrm1":
-        presets = doc["extensions"]["VRMC_vrm"].get("expressions", {}).get("preset", {})
-        for name, expr in presets.items():
-            binds[name] = [(b["node"], b["index"], b.get("weight", 1.0)) for b in expr.get("morphTargetBinds", [])]
-    else:
-        mesh_nodes = {node["mesh"]: n for n, node in enumerate(doc.get("nodes", [])) if "mesh" in node}
-        groups = doc["extensions"]["VRM"].get("blendShapeMaster", {}).get("blendShapeGroups", [])
-        for group in groups:
-            binds[group.get("presetName", "")] = [
-                (mesh_nodes[b["mesh"]], b["index"], b.get("weight", 100.0) / 100.0)
-                for b in group.get("binds", [])
-                if b["mesh"] in mesh_nodes
-            ]
-    face: dict[tuple[int, int], list[tuple[int, float]]] = {}
-    for name, arkit_terms in VRM_EXPRESSIONS:
-        preset = VRM0_PRESETS.get(name, name) if kind == "vrm0" else name
-        for node, target, weight in binds.get(preset, []):
-            terms = face.setdefault((node, target), [])
-            terms += [(ARKIT_INDEX[a], gain * weight) for a, gain in arkit_terms]
-    return face
-
-
 def load_rig(path: str | Path) -> Rig:
     """Read a VRM or Mixamo-rigged GLB (or our own SMPL-X GLB); RigError says what is missing."""
     path = Path(path)
@@ -370,9 +373,7 @@ def load_rig(path: str | Path) -> Rig:
             f"--avatar {path}: no humanoid bones for {', '.join(missing)} "
             "(a VRM 0.x/1.0 humanoid, Mixamo's mixamorig:* bones or SMPL-X's joint names are needed)"
         )
-    face = _arkit_face(gltf.doc)
-    if not face and kind in ("vrm0", "vrm1"):
-        face = _vrm_face(gltf.doc, kind)
+    face = _arkit_face(gltf.doc)  # a VRM without ARKit morphs: its expressions (spec()["vrm"], the page's three-vrm)
     world, parents = world_transforms(gltf.doc)
     return Rig(path, kind, gltf, bones, face, world, parents)
 

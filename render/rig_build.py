@@ -1,7 +1,8 @@
 """Rigs in the formats users bring, built from the built-in avatar, so the retargeting is tested without any
 licensed file: a Mixamo-style GLB (`mixamorig:*` bones whose axes run along the bones, an armature scaled by 0.01,
 an A-pose, ARKit morph targets) and VRM 1.0 / 0.x models (humanoid bones, expressions bound to the avatar's six
-face shapes; the 0.x model faces -z as that version does).
+face shapes, bone look-at; the 0.x model faces -z as that version does; the 1.0 model has an MToon material and a
+spring bone chain, VRMC_springBone).
 
     python -m render.rig_build mixamo out.glb      # or vrm1 out.vrm, vrm0 out.vrm
 """
@@ -35,9 +36,20 @@ from render.rig import MIXAMO, SMPLX_FLOOR_TRANS_Y, _yaw, humanoid_names, matrix
 
 A_POSE_RAD = 0.7  # the Mixamo-style rig's arms hang this far below the T-pose (40°)
 ARMATURE_SCALE = 0.01  # Mixamo's FBX-to-glTF armatures are in centimetres under a 0.01 scale
-VRM_EXPRESSION_SHAPES = {"happy": "smile", "blink": "blink", "aa": "lips_apart", "ou": "pucker", "ee": "mouth_wide"}
-VRM_EXPRESSION_SHAPES["surprised"] = "brow_raise"
-VRM0_NAMES = {"happy": "joy", "aa": "a", "ou": "u", "ee": "e", "blink": "blink", "surprised": "surprised"}
+VRM_EXPRESSION_SHAPES = {"happy": "smile", "blink": "blink", "aa": "lips_apart", "ih": "lips_apart", "ou": "pucker"}
+VRM_EXPRESSION_SHAPES |= {"ee": "mouth_wide", "surprised": "brow_raise"}
+VRM0_NAMES = {"happy": "joy", "aa": "a", "ih": "i", "ou": "u", "ee": "e", "blink": "blink", "surprised": "surprised"}
+# VRM 1.0's spring bone chain: a three-joint ponytail behind the head (offsets from the previous joint, metres)
+SPRING_OFFSETS = ((0.0, 0.03, -0.11), (0.0, -0.07, -0.02), (0.0, -0.07, 0.0))
+HEAD_COLLIDER_M = ((0.0, 0.02, 0.0), 0.09)  # a sphere around the head the ponytail does not enter
+MTOON = {  # VRM 1.0's toon material on the body (VRMC_materials_mtoon), as VRoid's models have
+    "specVersion": "1.0",
+    "shadeColorFactor": [0.55, 0.5, 0.55],
+    "shadingToonyFactor": 0.9,
+    "shadingShiftFactor": 0.0,
+    "giEqualizationFactor": 0.9,
+    "outlineWidthMode": "none",
+}
 UNMAPPED_MIXAMO = ("jaw",)
 FLOOR_TRANS = np.array([0.0, SMPLX_FLOOR_TRANS_Y, 0.0])  # Mixamo's skeleton has no jaw: its vertices follow the head
 
@@ -146,12 +158,41 @@ def build_rig_glb(kind: str, model: BodyModel | None = None) -> bytes:
     doc["meshes"] = [{"primitives": [primitive], "extras": {"targetNames": target_names}}]
     doc["materials"] = [{"pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 0.8}}]
     if kind != "mixamo":
-        _vrm_extension(doc, kind, {names[j].split("_", 1)[1]: node_of[j] for j in kept}, target_names)
+        bones = {names[j].split("_", 1)[1]: node_of[j] for j in kept}
+        _vrm_extension(doc, kind, bones, target_names)
+        if kind == "vrm1":
+            _spring_bones(doc, bones["head"])
+            doc["materials"][0]["extensions"] = {"VRMC_materials_mtoon": MTOON}
+            doc["extensionsUsed"].append("VRMC_materials_mtoon")
     return writer.glb()
 
 
+def _spring_bones(doc: dict, head: int) -> None:
+    """VRMC_springBone: a chain of joint nodes under the head (no vertices follow them: the chain is there to
+    be simulated, read back and checked), kept out of the head by a sphere collider."""
+    parent = head
+    joints = []
+    for offset in SPRING_OFFSETS:
+        doc["nodes"].append({"name": f"ponytail{len(joints) + 1}", "translation": list(offset)})
+        doc["nodes"][parent].setdefault("children", []).append(len(doc["nodes"]) - 1)
+        parent = len(doc["nodes"]) - 1
+        joints.append({"node": parent, "hitRadius": 0.02, "stiffness": 0.6, "gravityPower": 0.3, "dragForce": 0.4})
+    doc["extensionsUsed"].append("VRMC_springBone")
+    offset, radius = HEAD_COLLIDER_M
+    doc["extensions"]["VRMC_springBone"] = {
+        "specVersion": "1.0",
+        "colliders": [{"node": head, "shape": {"sphere": {"offset": list(offset), "radius": radius}}}],
+        "colliderGroups": [{"name": "head", "colliders": [0]}],
+        "springs": [{"name": "ponytail", "joints": joints, "colliderGroups": [0]}],
+    }
+
+
 def _vrm_extension(doc: dict, kind: str, bones: dict[str, int], target_names: list[str]) -> None:
-    meta = {"name": "ecas test rig", "authors": ["ecas"], "licenseUrl": "https://opensource.org/licenses/MIT"}
+    meta = {
+        "name": "ecas test rig",
+        "authors": ["ecas"],
+        "licenseUrl": "https://vrm.dev/licenses/1.0/",
+    }  # VRM 1.0 accepts only this
     shape_index = {name: i for i, name in enumerate(target_names)}
     if kind == "vrm1":
         presets = {
@@ -165,6 +206,7 @@ def _vrm_extension(doc: dict, kind: str, bones: dict[str, int], target_names: li
                 "meta": meta,
                 "humanoid": {"humanBones": {bone: {"node": n} for bone, n in bones.items()}},
                 "expressions": {"preset": presets},
+                "lookAt": {"type": "bone", "offsetFromHeadBone": [0.0, 0.06, 0.0]},
             }
         }
     else:
@@ -183,6 +225,11 @@ def _vrm_extension(doc: dict, kind: str, bones: dict[str, int], target_names: li
                 "meta": {"title": meta["name"], "author": "ecas"},
                 "humanoid": {"humanBones": [{"bone": bone, "node": n} for bone, n in bones.items()]},
                 "blendShapeMaster": {"blendShapeGroups": groups},
+                "firstPerson": {
+                    "firstPersonBone": bones["head"],
+                    "firstPersonBoneOffset": {"x": 0.0, "y": 0.06, "z": 0.0},
+                    "lookAtTypeName": "Bone",
+                },
             }
         }
 

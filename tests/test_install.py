@@ -10,7 +10,9 @@ requirements, takes minutes and is timed in docs/install.md.
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -21,11 +23,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from agent.dashboard.vendor import ENTRIES, NODE_MODULES, vendor_files
 from ecas.cli import COMMANDS
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("ecas", "agent", "dialogue", "gesture", "render", "bench")
-SOURCE_TOP_SKIP = {"build", "runs", "out", "cache", "data", "tests", "docs", "scripts"}
+SOURCE_TOP_SKIP = {"build", "runs", "out", "cache", "data", "tests", "docs", "scripts", "node_modules"}
 
 
 def _source_skip(directory: str, names: list[str]) -> set[str]:
@@ -61,12 +64,30 @@ def _run(cmd: list[str], cwd: Path, env: dict[str, str], timeout_s: float = 600)
     return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout_s)
 
 
+def _copy_page_modules(source: Path) -> None:
+    """The checkout's node_modules, cut to the files the build step copies (three.js alone is 24 MB)."""
+    for name, rels in vendor_files().items():
+        for rel in rels:
+            target = source / "node_modules" / ENTRIES[name][0] / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(NODE_MODULES / ENTRIES[name][0] / rel, target)
+
+
+needs_node_modules = pytest.mark.skipif(
+    not (NODE_MODULES / "three").is_dir() or not (NODE_MODULES / "@pixiv" / "three-vrm").is_dir(),
+    reason="needs the page's JavaScript in node_modules (`npm ci`)",
+)
+
+
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
-    """A wheel built from a copy of the checkout (the build leaves nothing in the checkout itself)."""
+    """A wheel built from a copy of the checkout (the build leaves nothing in the checkout itself), with the
+    page's JavaScript in its node_modules when this checkout has it."""
     root = tmp_path_factory.mktemp("wheel")
     source = root / "source"
     shutil.copytree(REPO, source, ignore=_source_skip, symlinks=False)
+    if (NODE_MODULES / "three").is_dir() and (NODE_MODULES / "@pixiv" / "three-vrm").is_dir():
+        _copy_page_modules(source)
     build = _run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(root), str(source)],
         root,
@@ -146,3 +167,120 @@ def test_ecas_speaks_the_packaged_example_from_another_directory(installed, tmp_
     assert motion["poses"].shape[0] > 100 and np.isfinite(motion["poses"]).all()
     config = (tmp_path / "report" / "config.yaml").read_text()
     assert str(bin_dir.parent) in config and str(REPO) not in config  # checkpoints from the installed package
+
+
+# The page's JavaScript (agent.dashboard.vendor): what the page imports, copied in by setup.py's build step.
+PAGE_MODULES = (
+    "agent/dashboard/vendor/three/build/three.module.js",
+    "agent/dashboard/vendor/three/build/three.core.js",
+    "agent/dashboard/vendor/three/examples/jsm/loaders/GLTFLoader.js",
+    "agent/dashboard/vendor/three/examples/jsm/utils/BufferGeometryUtils.js",
+    "agent/dashboard/vendor/three/LICENSE",
+    "agent/dashboard/vendor/three-vrm/lib/three-vrm.module.min.js",
+    "agent/dashboard/vendor/three-vrm/LICENSE",
+)
+MAX_VENDOR_BYTES = 4_000_000  # uncompressed; three.js's whole npm package is 24 MB
+
+
+@needs_node_modules
+def test_the_wheel_carries_only_the_javascript_the_page_imports(wheel):
+    archive = zipfile.ZipFile(wheel)
+    vendored = {i.filename: i for i in archive.infolist() if i.filename.startswith("agent/dashboard/vendor/")}
+    missing = [name for name in PAGE_MODULES if name not in vendored]
+    assert not missing, f"not in the wheel: {missing}"
+    assert "MIT License" in archive.read("agent/dashboard/vendor/three/LICENSE").decode()
+    assert "MIT License" in archive.read("agent/dashboard/vendor/three-vrm/LICENSE").decode()
+    expected = {f"agent/dashboard/vendor/{n}/{rel}" for n, rels in vendor_files().items() for rel in rels}
+    assert set(vendored) == expected  # nothing else of the npm packages (no src/, no examples not imported)
+    raw = sum(i.file_size for i in vendored.values())
+    packed = sum(i.compress_size for i in vendored.values())
+    assert raw < MAX_VENDOR_BYTES
+    print(
+        f"wheel {wheel.stat().st_size / 1e6:.1f} MB; "
+        f"the page's JavaScript {raw / 1e6:.2f} MB, {packed / 1e6:.2f} MB packed"
+    )
+
+
+def test_every_module_the_page_imports_is_vendored():
+    """The page's modules' imports (static/*.js), through the import map of index.html or as /vendor/ URLs, are
+    files the build copies (or the page's own /static/ files, package data)."""
+    static = REPO / "agent" / "dashboard" / "static"
+    html = (static / "index.html").read_text()
+    imports = json.loads(re.search(r'<script type="importmap">(.*?)</script>', html, re.S).group(1))["imports"]
+    specifiers = set()
+    for module in static.glob("*.js"):
+        source = module.read_text()
+        specifiers |= set(re.findall(r"""(?:^import .*? from |\bimport\()\s*["']([^"'$]+)["']""", source, re.M))
+        specifiers |= set(re.findall(r"""^export const \w+_MODULE = ["']([^"']+)["']""", source, re.M))
+    assert "three" in specifiers and any("three-vrm" in s for s in specifiers), specifiers
+    files = vendor_files() if (NODE_MODULES / "three").is_dir() else None
+    for spec in specifiers - {"/static/avatar.js"}:
+        url = imports.get(spec) or next(
+            (v + spec[len(k) :] for k, v in imports.items() if k.endswith("/") and spec.startswith(k)), spec
+        )
+        if url.startswith("/static/"):
+            assert (static / url[len("/static/") :]).is_file(), url
+            continue
+        assert url.startswith("/vendor/"), spec
+        name, rel = url[len("/vendor/") :].split("/", 1)
+        assert name in ENTRIES and (files is None or rel in files[name]), url
+
+
+SERVE_VENDOR = """
+import asyncio, json, sys
+import aiohttp
+from agent.dashboard.server import Hub, make_app, start_server
+
+async def main():
+    runner, port = await start_server(make_app(Hub(lambda: [], lambda _c: None)), "127.0.0.1", 0)
+    out = {}
+    try:
+        async with aiohttp.ClientSession() as session:
+            for path in sys.argv[1:]:
+                async with session.get(f"http://127.0.0.1:{port}{path}") as r:
+                    out[path] = [r.status, len(await r.read()), r.headers.get("Content-Type", "")]
+    finally:
+        await runner.cleanup()
+    print(json.dumps(out))
+
+asyncio.run(main())
+"""
+
+
+@needs_node_modules
+def test_the_installed_dashboard_serves_the_pages_javascript_and_browser_mode_needs_it(installed, tmp_path):
+    """The installed server (no checkout, no node_modules beside it) serves /vendor/ from the package's copy; with
+    that copy gone, `ecas --set render.mode=browser` stops before any stage with one line naming `npm ci`."""
+    bin_dir, env = installed
+    paths = [
+        "/vendor/three/build/three.module.js",
+        "/vendor/three/build/three.core.js",
+        "/vendor/three/examples/jsm/loaders/GLTFLoader.js",
+        "/vendor/three-vrm/lib/three-vrm.module.min.js",
+        "/vendor/three/src/Three.js",  # not shipped
+    ]
+    done = _run([str(bin_dir / "python"), "-c", SERVE_VENDOR, *paths], tmp_path, env)
+    assert done.returncode == 0, done.stderr
+    served = json.loads(done.stdout)
+    for path in paths[:-1]:
+        status, size, kind = served[path]
+        assert status == 200 and size > 10_000 and "javascript" in kind, (path, served[path])
+    assert served[paths[-1]][0] == 404
+    where = _run(
+        [str(bin_dir / "python"), "-c", "from agent.dashboard.vendor import vendor_dir; print(vendor_dir('three'))"],
+        tmp_path,
+        env,
+    ).stdout.strip()
+    vendor = Path(where).parent
+    assert vendor.is_relative_to(bin_dir.parent) and vendor.name == "vendor"
+    hidden = vendor.with_name("vendor-hidden")
+    vendor.rename(hidden)
+    try:
+        args = ["--replay", str(REPO / "ecas" / "examples" / "librivox_0870.wav"), "--set", "render.mode=browser"]
+        done = _run([str(bin_dir / "ecas"), *args, "--report", "report"], tmp_path, env)
+    finally:
+        hidden.rename(vendor)
+    assert done.returncode == 2, done.stdout[-2000:] + done.stderr[-2000:]
+    lines = done.stderr.strip().splitlines()
+    assert lines[-1].startswith("error: render.mode browser:") and "npm ci" in lines[-1], done.stderr[-2000:]
+    assert not (tmp_path / "report").exists() or not any((tmp_path / "report").iterdir())

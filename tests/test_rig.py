@@ -13,7 +13,7 @@ from render.arkit import ARKIT_INDEX, arkit_weights
 from render.avatar import build_avatar
 from render.gltf import avatar_glb
 from render.lbs import Skinner
-from render.rig import RigError, load_rig, quaternion_to_matrix_np, retarget
+from render.rig import RigError, load_rig, quaternion_to_matrix_np, retarget, vrm_expression_weights
 from render.rig_build import build_rig_glb
 
 KINDS = ("vrm1", "vrm0", "mixamo")
@@ -53,8 +53,8 @@ def test_each_format_is_recognised_with_its_bones_and_face(rigs):
         assert len(rig.bones) == expected, kind
     assert len(rigs["mixamo"].face) == 52  # ARKit-named morph targets
     assert len(rigs["smplx"].face) == 52
-    for kind in ("vrm1", "vrm0"):  # VRM expressions bound to the six face shapes
-        assert len(rigs[kind].face) == 6
+    for kind in ("vrm1", "vrm0"):  # no ARKit morphs: the page drives the VRM expressions (three-vrm)
+        assert rigs[kind].face == {} and len(rigs[kind].spec()["vrm"]["expressions"]) == 9
 
 
 @pytest.mark.parametrize("kind", (*KINDS, "smplx"))
@@ -115,16 +115,19 @@ def test_the_pages_spec_arithmetic_gives_the_same_pose(rigs, kind):
         assert np.allclose(r, _rotation(expected[n]), atol=1e-6), (kind, nodes[n].get("name"))
 
 
-@pytest.mark.parametrize("kind", ("vrm1", "vrm0"))
-def test_vrm_expressions_follow_the_arkit_weights(rigs, kind):
-    rig = rigs[kind]
-    psi = expressions_from_activations({"blink": np.ones(1), "smile": np.full(1, 0.6)})
-    w = arkit_weights(psi, np.array([[0.02, 0, 0]]))[0]
+def test_vrm_expressions_follow_the_arkit_weights():
+    psi = expressions_from_activations({"blink": np.ones(1), "smile": np.full(1, 0.6), "pucker": np.full(1, 0.4)})
+    w = arkit_weights(psi, np.array([[0.12, 0, 0]]))[0]
     assert w[ARKIT_INDEX["eyeBlinkLeft"]] == pytest.approx(1.0, abs=1e-4)
-    names = rig.gltf.doc["meshes"][0]["extras"]["targetNames"]
-    values = {names[t]: min(1.0, sum(g * w[a] for a, g in terms)) for (_, t), terms in rig.face.items()}
-    assert values["blink"] == pytest.approx(1.0, abs=1e-4) and values["smile"] == pytest.approx(0.6, abs=1e-4)
-    assert values["pucker"] == 0
+    values = vrm_expression_weights(w)
+    assert values["blink"] == pytest.approx(1.0, abs=1e-4) and values["blinkLeft"] == values["blinkRight"] == 0
+    assert values["happy"] == pytest.approx(0.6, abs=1e-4) and values["sad"] == 0
+    assert values["aa"] == pytest.approx(0.5, abs=1e-4)  # the jaw 0.10 rad above its rest, over 0.20 rad
+    assert values["ou"] == pytest.approx(0.4, abs=1e-4) and values["oh"] == pytest.approx(0.2, abs=1e-4)
+    w[ARKIT_INDEX["eyeBlinkRight"]] = 0.3  # one eye more closed than the other: the common part, then the rest
+    values = vrm_expression_weights(w)
+    assert values["blink"] == pytest.approx(0.3) and values["blinkLeft"] == pytest.approx(0.7)
+    assert values["blinkRight"] == 0
 
 
 def test_a_file_without_a_humanoid_is_refused_clearly(tmp_path, rigs):
@@ -140,3 +143,24 @@ def test_a_file_without_a_humanoid_is_refused_clearly(tmp_path, rigs):
     (tmp_path / "x.vrm").write_bytes(b"not a model")
     with pytest.raises(RigError, match="not a readable glTF"):
         load_rig(tmp_path / "x.vrm")
+
+
+@pytest.mark.parametrize("kind", ("vrm1", "vrm0"))
+def test_the_normalized_bones_rotation_gives_the_same_pose(rigs, kind):
+    """three-vrm's normalized bones rest at the identity in world axes: F G_j F⁻¹ · normalized_b (the spec) times
+    the bone's rest world rotation W_b is the posed world rotation render.rig.retarget gives."""
+    from gesture.body.rotation import axis_angle_to_matrix_np
+    from render.rig import _rotation, _yaw
+
+    rig = rigs[kind]
+    rng = np.random.default_rng(6)
+    poses = rng.normal(0, 0.4, (55, 3))
+    expected = retarget(rig, poses, np.array([0.0, 1.3, 0.0]))
+    local = axis_angle_to_matrix_np(poses)
+    g = np.empty_like(local)
+    for j in range(55):
+        g[j] = local[j] if rig.spec()["parents"][j] < 0 else g[rig.spec()["parents"][j]] @ local[j]
+    f = _yaw(rig.yaw_deg)
+    for b in rig.spec()["bones"]:
+        world = f @ g[b["joint"]] @ f.T @ quaternion_to_matrix_np(b["normalized"]) @ _rotation(rig.world[b["node"]])
+        assert np.allclose(world, _rotation(expected[b["node"]]), atol=1e-9), (kind, b["node"])

@@ -25,11 +25,12 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 from agent.dashboard.access import access_middleware
 from agent.dashboard.events import BINARY_HEADER, BINARY_MIC, Event
+from agent.dashboard.vendor import ENTRIES, missing, vendor_dir
 
 log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
-THREE_DIR = Path(__file__).resolve().parents[2] / "node_modules" / "three"  # `npm ci` at setup (package.json)
+THREE_DIR = vendor_dir("three")  # the wheel's copy, else the checkout's node_modules (agent.dashboard.vendor)
 MAX_PENDING_EVENTS = 2000  # a page this far behind is disconnected; it reconnects and gets a snapshot
 MAX_PENDING_AUDIO = 25  # steps of agent audio (2 s)
 MAX_PENDING_FRAMES = 4  # the render stage publishes a step's two frames together
@@ -305,10 +306,11 @@ def make_app(
     app.router.add_get("/avatar.glb", avatar_glb)
     app.router.add_get("/avatar.json", avatar_spec)
     app.router.add_static("/static/", STATIC_DIR)
-    if THREE_DIR.is_dir():
-        app.router.add_static("/vendor/three/", THREE_DIR)
-    else:
-        log.warning("%s is missing: run `npm ci` (render.mode browser draws the avatar with it)", THREE_DIR)
+    for name in ENTRIES:  # /vendor/three/, /vendor/three-vrm/: the page's JavaScript, never from a CDN
+        if vendor_dir(name).is_dir():
+            app.router.add_static(f"/vendor/{name}/", vendor_dir(name))
+    if missing():
+        log.warning("%s", missing())
     return app
 
 

@@ -9,6 +9,7 @@
 // reports the step shown (end-to-end latency to the display).
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { VrmDriver, isVrm, registerVrm } from "/static/vrm.js";
 
 const FRAME_MS = 40;
 const FRAMES_PER_STEP = 2;
@@ -107,10 +108,13 @@ export class AvatarPlayer {
     const sun = new THREE.DirectionalLight(0xffffff, 1.8);
     sun.position.set(1, 2, 3);
     this.scene.add(sun);
-    const [gltf, spec] = await Promise.all([
-      new GLTFLoader().loadAsync(url),
-      fetch(specUrl).then((r) => { if (!r.ok) throw new Error(`${specUrl}: ${r.status}`); return r.json(); }),
+    const fetchOk = (u) => fetch(u).then((r) => { if (!r.ok) throw new Error(`${u}: ${r.status}`); return r; });
+    const [buffer, spec] = await Promise.all([
+      fetchOk(url).then((r) => r.arrayBuffer()), fetchOk(specUrl).then((r) => r.json()),
     ]);
+    const loader = new GLTFLoader();
+    if (isVrm(spec)) await registerVrm(loader);  // three-vrm: MToon, spring bones, look-at, expressions
+    const gltf = await loader.parseAsync(buffer, "");
     this.scene.add(gltf.scene);
     gltf.scene.updateMatrixWorld(true);
     const byNode = new Map();
@@ -132,6 +136,8 @@ export class AvatarPlayer {
     this.hipsParentInverse = new THREE.Matrix4().fromArray(spec.hips.parent_inverse);
     this.face = spec.face.map((f) => ({meshes: meshesOf(byNode.get(f.node) || new THREE.Object3D()),
                                        target: f.target, terms: f.terms}));
+    this.vrm = gltf.userData.vrm ? new VrmDriver(gltf.userData.vrm, spec, this.bones.map((b) => b.object), this.camera)
+      : null;
     this.yaw = new THREE.Quaternion().setFromAxisAngle(new THREE.Vector3(0, 1, 0), spec.yaw_deg * Math.PI / 180);
     this.yawInverse = this.yaw.clone().invert();
     this.global = JOINT_NAMES.map(() => new THREE.Quaternion());
@@ -183,7 +189,8 @@ export class AvatarPlayer {
   }
 
   /** Interpolate two frames and drive the rig: SMPL-X's global rotations, then each bone's world rotation
-   *  W' = F G_j F^-1 K_b turned into its local rotation under its parent's posed world rotation. */
+   *  W' = F G_j F^-1 K_b turned into its local rotation under its parent's posed world rotation (a VRM: through
+   *  three-vrm's normalized bones, static/vrm.js). */
   pose(f0, f1, a) {
     const parents = this.spec.parents;
     for (let j = 0; j < JOINTS; j++) {
@@ -193,7 +200,7 @@ export class AvatarPlayer {
       if (parents[j] < 0) this.global[j].copy(this.local[j]);
       else this.global[j].multiplyQuaternions(this.global[parents[j]], this.local[j]);
     }
-    this.bones.forEach((b, k) => {
+    if (!this.vrm) this.bones.forEach((b, k) => {
       const w = this.posed[k].copy(this.yaw).multiply(this.global[b.joint]).multiply(this.yawInverse).multiply(b.k);
       const parentWorld = b.ancestor >= 0 ? this._q0.multiplyQuaternions(this.posed[b.ancestor], b.between)
         : this._q0.copy(b.between);
@@ -201,13 +208,18 @@ export class AvatarPlayer {
     });
     const t = [0, 1, 2].map((i) => f0.t[i] + a * (f1.t[i] - f0.t[i]));
     const shift = new THREE.Vector3(t[0], t[1] - this.spec.hips.floor_trans_y, t[2]).applyQuaternion(this.yaw);
-    this.hips.position.copy(shift.multiplyScalar(this.spec.hips.scale).add(this.hipsRest))
-      .applyMatrix4(this.hipsParentInverse);
+    const hipsWorld = shift.multiplyScalar(this.spec.hips.scale).add(this.hipsRest);
+    if (this.vrm) this.vrm.pose(this.global, this.yaw, this.yawInverse, hipsWorld);
+    else this.hips.position.copy(hipsWorld).applyMatrix4(this.hipsParentInverse);
     for (const {meshes, target, terms} of this.face) {
       let value = 0;
       for (const [i, gain] of terms) value += gain * (f0.w[i] + a * (f1.w[i] - f0.w[i]));
       value = Math.min(1, Math.max(0, value));
       for (const mesh of meshes) if (mesh.morphTargetInfluences) mesh.morphTargetInfluences[target] = value;
+    }
+    if (this.vrm) {
+      this.vrm.face((i) => f0.w[i] + a * (f1.w[i] - f0.w[i]));
+      this.vrm.update();
     }
   }
 
