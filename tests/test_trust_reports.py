@@ -138,8 +138,10 @@ def talk(tmp_path) -> Path:
     return recording(tmp_path / "talk.wav", 1.0)
 
 
-def test_the_spooled_motion_record_equals_the_whole_one(tmp_path):
+@pytest.mark.parametrize("chunk_steps", [5, 4096])  # 37 steps: 7 whole chunks and 2 steps, or one chunk
+def test_the_spooled_motion_record_equals_the_whole_one(tmp_path, monkeypatch, chunk_steps):
     """The gesture stage's offline record goes to disk step by step (flat memory); motion.npz is the same file."""
+    monkeypatch.setattr("gesture.motion_spool.CHUNK_STEPS", chunk_steps)
     recorded = steps(37)
     for step in recorded:
         step.tokens = np.arange(N_GESTURE_TOKENS, dtype=np.int32) * 1000 + step.step
