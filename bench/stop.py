@@ -5,9 +5,10 @@ streamed for `--after-start-s`, sends SIGINT to the whole group (what Ctrl-C doe
 /proc until no process of the session is left. It reports the median and p95 of both times, whether the report
 files were complete (`latency.json` parses, `transcript.json` parses, `motion.npz` opens for offline runs), and
 the same with `--load N` busy-loop processes at normal priority competing for the cores (`python -c 'while 1:
-pass'`), so the number is what a user on a loaded machine sees.
+pass'`), so the number is what a user on a loaded machine sees. `--baseline DIR` (another checkout, e.g. `git
+archive` of an older commit) alternates its runs with this checkout's, so both see the same load.
 
-    python -m bench.stop --repeats 10 --load 3 [--offline] [--json out.json]
+    python -m bench.stop --repeats 10 --load 3 [--offline] [--baseline DIR] [--json out.json]
 """
 
 from __future__ import annotations
@@ -45,8 +46,8 @@ def session_pids(sid: int) -> list[int]:
     return pids
 
 
-def launch_command(report: Path, offline: bool, extra: list[str]) -> list[str]:
-    cmd = [sys.executable, str(ROOT / "launch.py"), "--report", str(report), "--set", "dashboard.port=0"]
+def launch_command(root: Path, report: Path, offline: bool, extra: list[str]) -> list[str]:
+    cmd = [sys.executable, str(root / "launch.py"), "--report", str(report), "--set", "dashboard.port=0"]
     cmd += ["--headless", "--mp4", str(report / "out.mp4")] if offline else []
     return cmd + extra
 
@@ -61,14 +62,14 @@ def wait_started(proc: subprocess.Popen, log_path: Path) -> None:
         time.sleep(0.05)
 
 
-def stop_once(report: Path, offline: bool, after_start_s: float, extra: list[str]) -> dict:
+def stop_once(root: Path, report: Path, offline: bool, after_start_s: float, extra: list[str]) -> dict:
     """One run: start, stream, SIGINT, and time the exit of the launcher and of its last process."""
     report.mkdir(parents=True)
     log_path = report.parent / f"{report.name}.console"
     with log_path.open("w") as console:
         proc = subprocess.Popen(
-            launch_command(report, offline, extra),
-            cwd=ROOT,
+            launch_command(root, report, offline, extra),
+            cwd=root,
             stdout=console,
             stderr=subprocess.STDOUT,
             start_new_session=True,
@@ -128,14 +129,16 @@ def summarize(rows: list[dict]) -> dict:
     return out
 
 
-def run(repeats: int, load: int, offline: bool, after_start_s: float, extra: list[str]) -> dict:
+def run(repeats: int, load: int, offline: bool, after_start_s: float, extra: list[str], baseline: Path | None) -> dict:
+    roots = {"this": ROOT, **({"baseline": baseline.resolve()} if baseline else {})}
+    rows: dict[str, list[dict]] = {name: [] for name in roots}
     busy = start_load(load)
     try:
         with tempfile.TemporaryDirectory(prefix="ecas-bench-stop-") as tmp:
-            rows = []
             for i in range(repeats):
-                rows.append(stop_once(Path(tmp) / f"run{i}", offline, after_start_s, extra))
-                print(json.dumps(rows[-1]), flush=True)
+                for name, root in roots.items():  # alternating, so both see the same load
+                    rows[name].append(stop_once(root, Path(tmp) / f"{name}{i}", offline, after_start_s, extra))
+                    print(json.dumps({name: rows[name][-1]}), flush=True)
     finally:
         for p in busy:
             p.kill()
@@ -145,7 +148,7 @@ def run(repeats: int, load: int, offline: bool, after_start_s: float, extra: lis
         "offline": offline,
         "load_average_1min": round(os.getloadavg()[0], 2),
         "cpus": os.cpu_count(),
-        **summarize(rows),
+        **{name: summarize(r) for name, r in rows.items()},
         "runs": rows,
     }
 
@@ -156,10 +159,11 @@ def main(argv=None) -> None:
     p.add_argument("--load", type=int, default=0, help="busy-loop processes at normal priority during the runs")
     p.add_argument("--offline", action="store_true", help="--headless --mp4 (writes motion.npz) instead of live")
     p.add_argument("--after-start-s", type=float, default=3.0, help="how long each run streams before SIGINT")
+    p.add_argument("--baseline", type=Path, help="another checkout whose runs alternate with this one's")
     p.add_argument("--json", type=Path, help="write the results here too")
     p.add_argument("extra", nargs="*", help="more launcher arguments (after --)")
     args = p.parse_args(argv)
-    result = run(args.repeats, args.load, args.offline, args.after_start_s, args.extra)
+    result = run(args.repeats, args.load, args.offline, args.after_start_s, args.extra, args.baseline)
     text = json.dumps({k: v for k, v in result.items() if k != "runs"}, indent=2)
     print(text)
     if args.json:
