@@ -123,13 +123,10 @@ class Supervisor:
         try:
             self._open_bus()
             self._spawn()
-            self._wait_ready()
-            self._sync_clocks()
-            self._wait_for_start()
-            self._send(Command.START, {"clock_offsets_ns": self.clock.offsets_ns()})
-            self.started_s = time.monotonic()
-            log.info("started: %s (bus: %s)", " → ".join(self.pipeline), self._bus_description())
-            self._watch()
+            for phase in (self._wait_ready, self._sync_clocks, self._wait_for_start, self._start, self._watch):
+                if self.interrupted:  # Ctrl-C or SIGTERM during the start-up: straight to the stop
+                    break
+                phase()
         except RunFailed as e:
             self.error = str(e)
         finally:
@@ -211,6 +208,11 @@ class Supervisor:
             while not (self.interrupted or self.dashboard.start_requested or self.dashboard.stop_requested):
                 self._tick()
 
+    def _start(self) -> None:
+        self._send(Command.START, {"clock_offsets_ns": self.clock.offsets_ns()})
+        self.started_s = time.monotonic()
+        log.info("started: %s (bus: %s)", " → ".join(self.pipeline), self._bus_description())
+
     def _watch(self) -> None:
         while not (self.interrupted or self.sink_done or (self.dashboard and self.dashboard.stop_requested)):
             self._tick()
@@ -281,6 +283,8 @@ class Supervisor:
                 self.finished_s = time.monotonic()
 
     def _check_processes(self) -> None:
+        if self.interrupted:
+            return  # a SIGTERM to the whole group may have ended a process first: the stop is under way, not a failure
         now = time.monotonic()
         if self.dashboard and self.dashboard.process.exitcode is not None:
             raise RunFailed(

@@ -76,6 +76,22 @@ def test_ctrl_c_during_the_start_up_does_not_wait_for_a_stage_still_loading(tmp_
     assert ipc_dirs(proc.pid) == []
 
 
+def test_sigterm_to_the_whole_group_during_the_start_up_is_a_stop_not_a_failure(tmp_path):
+    """`kill -TERM -- -PGID` (or a service manager) reaches every process at once: a stage or the dashboard that
+    ends of it before the supervisor has acted is part of the stop, not a failure (it was "the dashboard died")."""
+    wav = recording(tmp_path / "talk.wav", 5)
+    report = tmp_path / "run"
+    gesture = ["--set", "run.components.gesture=tests.test_trust_stop:loading_forever"]  # the run never starts
+    proc = launch(["--replay", str(wav), *gesture, *PATIENT_STOP], report)  # with the dashboard
+    wait_until(lambda: "ready" in _read(report / "dialogue.log"), 120, "the dialogue stage ready")
+    os.killpg(proc.pid, signal.SIGTERM)
+    code, output = finish(proc, STOP_DEADLINE_S)
+    assert code == 130, output
+    assert " ERROR" not in output, output
+    assert leftovers(proc.pid) == []
+    assert ipc_dirs(proc.pid) == []
+
+
 @pytest.mark.slow
 def test_ctrl_c_on_the_shipped_agent_offline_leaves_its_motion_and_no_partial_mp4(tmp_path):
     """The real stages (default config) on the bundled recording, offline with an MP4, stopped mid-stream."""
