@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ecas.core.bus import BusConfig
+from ecas.core.config import ConfigError
 from tests.test_reliability_runtime import ipc_dirs, recording, wait_until
 from tests.test_runtime import ROOT, finish, launch, leftovers
 
@@ -45,6 +47,12 @@ def interrupt(proc: subprocess.Popen) -> tuple[int, str]:
 def assert_whole_png(path: Path) -> None:
     data = path.read_bytes()
     assert data.startswith(PNG_MAGIC) and data.endswith(PNG_END), f"{path} is not a whole PNG"
+
+
+@pytest.mark.parametrize("option", ["stop_timeout_s", "ready_timeout_s"])
+def test_a_stop_or_ready_timeout_must_be_positive(option):
+    with pytest.raises(ConfigError, match=rf"bus.{option}: must be > 0, got -1"):
+        BusConfig(**{option: -1.0})
 
 
 def test_ctrl_c_on_a_live_run_stops_every_process_by_itself_with_a_whole_report(tmp_path):
