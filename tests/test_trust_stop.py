@@ -100,7 +100,6 @@ def test_sigterm_to_the_whole_group_during_the_start_up_is_a_stop_not_a_failure(
     assert ipc_dirs(proc.pid) == []
 
 
-@pytest.mark.slow
 def test_ctrl_c_on_the_shipped_agent_offline_leaves_its_motion_and_no_partial_mp4(tmp_path):
     """The real stages (default config) on the bundled recording, offline with an MP4, stopped mid-stream."""
     report = tmp_path / "run"
