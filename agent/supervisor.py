@@ -5,7 +5,8 @@ clock offset (NTP-style PING/PONG), then START. Running: collect heartbeats, lat
 A stage that dies or stops beating ends the run with its name, exit code and the tail of its log; so does a
 stage that reports a failure (e.g. its MP4 cannot be written), in one line, and one that publishes nothing for
 `bus.stall_timeout_s` while its upstream stage is ahead of it.
-Stop: STOP on the bus, then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the partial files
+Stop: STOP on the bus to every process at once (a stage still loading its models, which cannot hear it, gets
+SIGTERM at once), then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the partial files
 the stages reported are removed (a killed stage cannot remove its own), and so is the private ipc directory.
 The directory is named `ecas-<supervisor pid>-*`: when the launcher is killed its processes remove it
 (agent.process.SupervisorWatch), and should they be killed too, the next run removes it once that pid is gone.
