@@ -5,7 +5,7 @@ Each check raises ConfigError with one line naming the option: the command line'
 `run.components` entries (imported), the gesture stage's checkpoints (every safetensors file opened, its
 header and tensors read and refused when not finite; the generator built exactly as the stage builds it, so
 shapes, the condition spec and option ranges such as `gesture.hold_levels` are checked against the checkpoint),
-and the render stage's body model.
+the render stage's body model, and the avatar the page will draw (`--avatar`: a glTF binary with humanoid bones).
 """
 
 from __future__ import annotations
@@ -156,9 +156,22 @@ def check_before_start(app: AppConfig) -> None:
         )
 
 
+def check_avatar(app: AppConfig) -> None:
+    """`render.avatar` (`--avatar`) is read by the dashboard when the page first asks for it: read it now."""
+    if not app.render.avatar:
+        return
+    from render.rig import RigError, load_rig
+
+    try:
+        load_rig(app.render.avatar)
+    except RigError as err:
+        raise ConfigError(str(err).replace("--avatar", "render.avatar (--avatar)", 1)) from None
+
+
 def _check_all(app: AppConfig) -> None:
     check_browser_page(app)
     check_components(app)
     check_weight_form(app)
     check_gesture_stage(app)
     check_render_stage(app)
+    check_avatar(app)

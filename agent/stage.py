@@ -188,7 +188,8 @@ class StageRunner:
                 set_offset(
                     origin_offset_ns(self.name, self.topology.pipeline[0], msg.detail.get("clock_offsets_ns", {}))
                 )
-        elif msg.command == Command.STOP:
+        elif msg.command == Command.STOP and not self.stopping:
+            log.info("stopping")
             self.stopping = True
         elif msg.command == Command.PING and msg.detail.get("to") == self.name:
             t1 = time.monotonic_ns()
@@ -333,8 +334,10 @@ class StageRunner:
         self.next_step += 1
 
     def _close(self) -> None:
+        start_s = time.monotonic()
         try:
             self.component.close()
+            log.info("closed in %.2f s", time.monotonic() - start_s)
         finally:
             if self.source is not None:
                 self.source.close()

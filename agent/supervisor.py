@@ -5,7 +5,8 @@ clock offset (NTP-style PING/PONG), then START. Running: collect heartbeats, lat
 A stage that dies or stops beating ends the run with its name, exit code and the tail of its log; so does a
 stage that reports a failure (e.g. its MP4 cannot be written), in one line, and one that publishes nothing for
 `bus.stall_timeout_s` while its upstream stage is ahead of it.
-Stop: STOP on the bus, then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the partial files
+Stop: STOP on the bus to every process at once (a stage still loading its models, which cannot hear it, gets
+SIGTERM at once), then SIGTERM, then SIGKILL, all within `bus.stop_timeout_s` + 0.5 s; the partial files
 the stages reported are removed (a killed stage cannot remove its own), and so is the private ipc directory.
 The directory is named `ecas-<supervisor pid>-*`: when the launcher is killed its processes remove it
 (agent.process.SupervisorWatch), and should they be killed too, the next run removes it once that pid is gone.
@@ -13,12 +14,14 @@ The directory is named `ecas-<supervisor pid>-*`: when the launcher is killed it
 
 from __future__ import annotations
 
+import io
 import logging
 import multiprocessing as mp
 import os
 import shutil
 import signal
 import tempfile
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -53,6 +56,7 @@ class RunFailed(RuntimeError):
 class StageStatus:
     process: mp.Process | None  # None: the stage runs on another host (`launch.py --worker`)
     state: str = "starting"
+    heard: bool = False  # it has sent a heartbeat: its runner is up and acts on STOP
     last_beat_s: float = field(default_factory=time.monotonic)
     counters: dict = field(default_factory=dict)
     error: str | None = None  # the failure the stage reported
@@ -120,13 +124,10 @@ class Supervisor:
         try:
             self._open_bus()
             self._spawn()
-            self._wait_ready()
-            self._sync_clocks()
-            self._wait_for_start()
-            self._send(Command.START, {"clock_offsets_ns": self.clock.offsets_ns()})
-            self.started_s = time.monotonic()
-            log.info("started: %s (bus: %s)", " → ".join(self.pipeline), self._bus_description())
-            self._watch()
+            for phase in (self._wait_ready, self._sync_clocks, self._wait_for_start, self._start, self._watch):
+                if self.interrupted:  # Ctrl-C or SIGTERM during the start-up: straight to the stop
+                    break
+                phase()
         except RunFailed as e:
             self.error = str(e)
         finally:
@@ -134,6 +135,7 @@ class Supervisor:
             self._remove_partial_files()
             for socket in (self.pub, self.sub):
                 if socket is not None:
+                    socket.socket.setsockopt(zmq.LINGER, 0)  # every process is gone: nothing left to deliver
                     socket.close()
             shutil.rmtree(self.ipc_dir, ignore_errors=True)
             for sig, handler in previous.items():
@@ -177,6 +179,7 @@ class Supervisor:
     def _spawn(self) -> None:
         local = spawn_stages(self.app, self.run_ctx, self.ipc_dir, self.factories)
         self.stages = {stage: StageStatus(local.get(stage)) for stage in self.pipeline}
+        threading.Thread(target=warm_up_plotting, name="warm-up-plotting", daemon=True).start()
         self.pause.reset()
 
     # ---- phases ----------------------------------------------------------------------------------------------
@@ -205,6 +208,11 @@ class Supervisor:
             log.info("waiting for Start on the dashboard")
             while not (self.interrupted or self.dashboard.start_requested or self.dashboard.stop_requested):
                 self._tick()
+
+    def _start(self) -> None:
+        self._send(Command.START, {"clock_offsets_ns": self.clock.offsets_ns()})
+        self.started_s = time.monotonic()
+        log.info("started: %s (bus: %s)", " → ".join(self.pipeline), self._bus_description())
 
     def _watch(self) -> None:
         while not (self.interrupted or self.sink_done or (self.dashboard and self.dashboard.stop_requested)):
@@ -258,6 +266,7 @@ class Supervisor:
         if status is None:
             return
         status.last_beat_s = time.monotonic()
+        status.heard = True
         if msg.command == Command.HEARTBEAT:
             status.state = msg.detail.get("state", status.state)
             status.counters = msg.detail.get("counters", status.counters)
@@ -275,6 +284,8 @@ class Supervisor:
                 self.finished_s = time.monotonic()
 
     def _check_processes(self) -> None:
+        if self.interrupted:
+            return  # a SIGTERM to the whole group may have ended a process first: the stop is under way, not a failure
         now = time.monotonic()
         if self.dashboard and self.dashboard.process.exitcode is not None:
             raise RunFailed(
@@ -323,10 +334,18 @@ class Supervisor:
         self.pub.send(Control(command=command, detail=detail or {}))
 
     def _stop_all(self) -> None:
+        """STOP to every process at once; each finishes its step, closes (writes its report files) and exits.
+
+        A stage still loading its models cannot hear STOP and has written nothing: it gets SIGTERM at once, so
+        Ctrl-C during the start-up does not wait `bus.stop_timeout_s` for it. Whatever is alive at the deadline
+        gets SIGTERM, then SIGKILL (`terminate`).
+        """
         if self.pub is None:
             return
         deadline = time.monotonic() + self.app.bus.stop_timeout_s
         self._send(Command.STOP)
+        loading = [s.process for s in self.stages.values() if s.process and not s.heard]
+        terminate(loading, grace_s=None)
         processes = [s.process for s in self.stages.values() if s.process]
         processes += [self.dashboard.process] if self.dashboard else []
         while any(p.is_alive() for p in processes) and time.monotonic() < deadline:
@@ -357,6 +376,31 @@ class Supervisor:
         return {name: status.counters for name, status in self.stages.items()}
 
 
+def warm_up_plotting() -> None:
+    """Import matplotlib (Agg) and draw one small figure while the stages load their models, not after Ctrl-C.
+
+    The report's latency.png is drawn once every process has stopped. The import alone took 0.8 s idle and
+    1.5-2 s on a loaded 2-core machine, and the first figure another 0.9 s there (the font manager, the first
+    text drawn, the PNG writer); later figures take half a second. Runs in a daemon thread; a failure here is
+    only logged, and the report's own plot says what is wrong.
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(2, 1))
+        ax.plot([0, 1], [0, 1], label="warm-up")
+        ax.set(xlabel="x", ylabel="y", title="warm-up")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(io.BytesIO(), dpi=30, format="png")
+        plt.close(fig)
+    except Exception:
+        log.debug("matplotlib did not warm up in the background", exc_info=True)
+
+
 def warn_public_listeners(listeners: dict[str, str], app: AppConfig) -> None:
     """One warning, naming the option, for every bus endpoint other machines can reach."""
     for name, address in listeners.items():
@@ -381,12 +425,14 @@ def spawn_stages(app: AppConfig, run: RunContext, ipc_dir: Path, factories: dict
     return processes
 
 
-def terminate(processes: list[mp.Process]) -> None:
-    """SIGTERM what is still alive, then SIGKILL after a short grace."""
+def terminate(processes: list[mp.Process], grace_s: float | None = KILL_GRACE_S) -> None:
+    """SIGTERM what is still alive, then SIGKILL after `grace_s` (None: SIGTERM only, no waiting)."""
     for process in processes:
         if process.is_alive():
             process.terminate()
-    kill_at = time.monotonic() + KILL_GRACE_S
+    if grace_s is None:
+        return
+    kill_at = time.monotonic() + grace_s
     for process in processes:
         process.join(max(0.0, kill_at - time.monotonic()))
     for process in processes:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ecas.core.body import NUM_EXPRESSIONS, NUM_JOINTS
-from gesture.body.model_file import ModelFileError, read_model_file
+from gesture.body.model_file import ModelFileError, read_model_file, wrong_body
 from gesture.body.skeleton import PARENTS
 
 SHAPE_SPACE_DIM = 300  # SMPL-X shapedirs columns [0, 300) are body shape, [300, 400) expressions
@@ -86,6 +86,8 @@ def _body_model_from_arrays(data: dict, name: str) -> BodyModel:
         raise BodyModelError(
             f"render.body_model: v_template {v_template.shape} and f {faces.shape} do not form a mesh. {SMPLX_HELP}"
         )
+    if j_regressor.ndim == 2 and j_regressor.shape[0] != NUM_JOINTS:
+        raise BodyModelError(f"render.body_model: {wrong_body(j_regressor.shape[0])}. {SMPLX_HELP}")
     if weights.shape != (n, NUM_JOINTS) or j_regressor.shape != (NUM_JOINTS, n):
         raise BodyModelError(
             f"render.body_model: weights {weights.shape} / J_regressor {j_regressor.shape} are not "

@@ -280,8 +280,16 @@ class MeshRenderer:
         if self.platform == "egl":
             self._close_egl()
         else:
-            self._gl.delete()
+            self._close_osmesa()
         self._gl = None
+
+    def _close_osmesa(self) -> None:
+        """What pyrender's delete() does, without its closing gc.collect(): in a process that holds torch and the
+        models that collection took 0.2-1.2 s, the largest part of the render stage's stop after Ctrl-C."""
+        self._gl._platform.make_current()
+        self._gl._renderer.delete()
+        self._gl._platform.delete_context()
+        self._gl._renderer = self._gl._platform = None
 
     def _close_egl(self) -> None:
         """Free our GL objects and EGL context only: pyrender's delete() calls eglTerminate on the process-wide

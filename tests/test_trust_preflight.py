@@ -56,6 +56,8 @@ def cases(tmp_path_factory) -> dict[str, tuple[list[str], str]]:
     marker = tmp / "ran"
     evil = tmp / "evil.npz"
     np.savez(evil, v_template=np.array([Planted(marker)], dtype=object))
+    not_gltf = tmp / "avatar.vrm"
+    not_gltf.write_bytes(talk.read_bytes())  # a WAV named .vrm
     replay = ["--replay", str(talk), "--headless"]
     lm_set = "gesture.lm_checkpoint="
     return {
@@ -89,6 +91,10 @@ def cases(tmp_path_factory) -> dict[str, tuple[list[str], str]]:
             [*replay, "--set", f"render.body_model={evil}"],
             "render.body_model: ",
         ),
+        "--avatar that is not glTF": (
+            ["--replay", str(talk), "--avatar", str(not_gltf)],
+            f"render.avatar (--avatar) {not_gltf}: not a readable glTF binary",
+        ),
     }, marker
 
 
@@ -111,6 +117,7 @@ CASES = [
     "run.components module missing",
     "run.components function missing",
     "render.body_model that would run code",
+    "--avatar that is not glTF",
 ]
 
 

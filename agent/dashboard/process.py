@@ -36,7 +36,7 @@ from agent.dashboard.events import (
     vad_event,
 )
 from agent.latency import DISPLAY_KEY, to_reference_clock
-from agent.process import SupervisorWatch, redirect_output
+from agent.process import SupervisorWatch, exit_now, redirect_output
 from agent.sections import AppConfig
 from agent.stage import SUPERVISOR
 from ecas.core.atomic import write_text_atomic
@@ -295,3 +295,4 @@ def dashboard_main(launch: DashboardLaunch) -> None:
         log.error("%s", e)
         sys.exit(EXIT_STARTUP_FAILED)
     log.info("stopped")
+    exit_now(0)  # without the interpreter's teardown, as the stages do (agent.process.exit_now)

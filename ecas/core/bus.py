@@ -60,8 +60,9 @@ class BusConfig:
                 f"bus.base_port: must be a tcp port (1-{65535 - len(STAGES) - 2}), or 0 for free "
                 f"ports; got {self.base_port}"
             )
-        if self.stall_timeout_s <= 0:
-            raise ConfigError(f"bus.stall_timeout_s: must be > 0, got {self.stall_timeout_s}")
+        for name in ("stall_timeout_s", "ready_timeout_s", "stop_timeout_s"):
+            if not getattr(self, name) > 0:  # a stop timeout of 0 or less would SIGTERM every stage at once
+                raise ConfigError(f"bus.{name}: must be > 0, got {getattr(self, name)}")
         for name in ("live_queue_steps", "credit_window_steps", "max_handler_failures"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"bus.{name}: must be >= 1, got {getattr(self, name)}")

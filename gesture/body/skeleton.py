@@ -24,7 +24,7 @@ import torch
 
 from ecas.core.body import NUM_JOINTS
 from ecas.core.errors import DataError
-from gesture.body.model_file import ModelFileError, read_model_file
+from gesture.body.model_file import ModelFileError, read_model_file, wrong_body
 from gesture.body.rotation import axis_angle_to_matrix
 
 _BODY_NAMES = (
@@ -163,6 +163,8 @@ class Skeleton:
         if hasattr(regressor, "toarray"):  # scipy sparse in the .pkl release
             regressor = regressor.toarray()
         regressor = np.asarray(regressor, dtype=np.float64)
+        if regressor.ndim == 2 and regressor.shape[0] != NUM_JOINTS:
+            raise SkeletonError(path, wrong_body(regressor.shape[0]))
         if regressor.shape != (NUM_JOINTS, v.shape[0]):
             raise SkeletonError(
                 path, f"'J_regressor' has shape {regressor.shape}, expected ({NUM_JOINTS}, {v.shape[0]})"
