@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from agent.dashboard.browser import HeadlessChromium, find_chromium
+from agent.latency import percentiles
 from bench.machine import BaselineMatmul, machine_report
 from ecas.core.paths import data_root
 from ecas.core.threads import limit_threads
@@ -63,7 +64,7 @@ SAMPLE_JS = """(() => {
 COUNTERS_HOOK_JS = """(() => { ws.addEventListener("message", (m) => {
   if (typeof m.data !== "string") return;
   const e = JSON.parse(m.data);
-  if (e.type === "counters") window.benchCounters = e.stages;
+  if (e.type === "counters") window.benchCounters = e;
 }); return true; })()"""
 RUN_OVER_JS = "window.dashboard.phase === 'stopped' || document.getElementById('connection').textContent === 'offline'"
 
@@ -153,7 +154,7 @@ async def watch(url: str, mode: str, run_s: float, stop_after_s: float | None, b
         await page.wait_for(ready, timeout_s=READY_TIMEOUT_S)
         await page.evaluate(COUNTERS_HOOK_JS)
         await page.wait_for("window.benchCounters", timeout_s=READY_TIMEOUT_S)
-        at_start = await page.evaluate("window.benchCounters")
+        at_start = (await page.evaluate("window.benchCounters"))["stages"]
         page_cpu_start = cpu.sample()
         await page.evaluate("document.getElementById('start').click()")
         started = time.monotonic()
@@ -173,7 +174,10 @@ async def watch(url: str, mode: str, run_s: float, stop_after_s: float | None, b
                 await page.wait_for(RUN_OVER_JS, timeout_s=60)
                 break
         wall_s = time.monotonic() - started
+        final = await page.evaluate("window.benchCounters")
         return {
+            "av_offsets_ms": await page.evaluate("window.dashboard.avOffsetsMs"),
+            "dashboard_counters": final["dashboard"],
             "wall_s": wall_s,
             "samples": samples,
             "stage_cpu_at_start": {s: c.get("cpu_s") for s, c in at_start.items()},
@@ -252,6 +256,8 @@ def summarize(mode, latency, watched, baseline, load_before, load_after) -> dict
         "steps_not_shown": display.get("steps_not_shown"),
         "sink_end_to_end_ms": {k: latency["end_to_end_ms"].get(k) for k in ("p50", "p95", "p99")},
         "bus_dropped": sum(c.get("dropped", 0) for c in latency["counters"].values()),
+        "dashboard_dropped": watched["dashboard_counters"].get("dropped"),
+        "voice_after_picture_ms": {k: v for k, v in percentiles(watched["av_offsets_ms"]).items() if k != "mean"},
         "fps": spread(frame_rates(samples, mode)),
         "page_fps": spread(page_fps),
         "page_last": {**last["dash"], **{f"avatar.{k}": v for k, v in last["avatar"].items()}},
@@ -276,6 +282,10 @@ def table(result: dict) -> str:
     row("page (Chromium) cores", lambda r: str(r["page_cores"]))
     row("display p50 / p95 / p99 ms", lambda r: "{p50} / {p95} / {p99}".format(**r["display_ms"]))
     row("steps shown / not shown", lambda r: f"{r['steps_shown']} / {r['steps_not_shown']}")
+    row(
+        "voice after picture p50 / p95 ms",
+        lambda r: "{p50} / {p95}".format(**r["voice_after_picture_ms"]) if r["voice_after_picture_ms"]["n"] else "-",
+    )
     row("fps median / p5 / min", lambda r: "{median} / {p5} / {min}".format(**r["fps"]) if r["fps"]["n"] else "-")
     row("baseline matmul ms during", lambda r: str(r["baseline_matmul_during_ms"]))
     row("load average before -> after", lambda r: f"{r['load_average_before'][0]} -> {r['load_average_after'][0]}")

@@ -280,3 +280,53 @@ def test_the_pages_playout_shows_every_step_soon_after_it_arrives():
     assert long_stall["shown"] + len(long_stall["skipped"]) == 600
     lost = sims["lost steps"]
     assert lost["skipped"] == [300, 301, 450] and lost["shown"] == 597, lost
+
+
+CPU_DEFORM = """(() => {
+  const player = window.ecasAvatar.player, items = player.deform.items, {mesh, geometry} = items[0];
+  const morphs = [];
+  for (const weights of WEIGHTS) {  // one set after another: each from the base, not from the last
+    weights.forEach((w, i) => { mesh.morphTargetInfluences[i] = w; });
+    player.deform.update();
+    morphs.push({position: Array.from(items[0].source.position), normal: Array.from(items[0].source.normal)});
+  }
+  player.poseForTest(POSE, [0.1, 1.25, 0.2], new Array(52).fill(0));  // skins the mesh (and its morphs)
+  const skinned = Array.from(geometry.attributes.position.array);
+  const v = new mesh.position.constructor(), three = [];
+  for (let i = 0; i < geometry.attributes.position.count; i += 7) {  // three.js's own CPU skinning
+    v.fromArray(items[0].source.position, 3 * i);
+    three.push([i, ...mesh.applyBoneTransform(i, v).toArray()]);
+  }
+  return {meshes: items.length, shaderMorphs: geometry.morphAttributes.position !== undefined,
+          shaderSkin: mesh.isSkinnedMesh, targets: mesh.morphTargetInfluences.length, morphs, skinned, three};
+})()"""
+
+
+@needs_browser
+def test_the_pages_cpu_morphs_and_skinning_equal_gltfs_and_three_js():
+    """The page morphs and skins the avatar on the CPU (not in SwiftShader's vertex shader): the morphed positions
+    and normals equal glTF's sum of weighted targets computed here from the file, and the skinned positions equal
+    three.js's SkinnedMesh.applyBoneTransform (what its shader computes) for a random pose."""
+    from agent.dashboard.avatar_file import cached_avatar_glb
+    from render.gltf import read_glb
+
+    rng = np.random.default_rng(3)
+    weights = [rng.uniform(0, 1, 52) * (rng.uniform(size=52) < 0.5), np.zeros(52), rng.uniform(0, 1, 52)]
+    pose = rng.normal(0, 0.4, 165)
+    script = CPU_DEFORM.replace("WEIGHTS", json.dumps([w.tolist() for w in weights]))
+    (result,) = asyncio.run(_in_a_page([script.replace("POSE", json.dumps(pose.tolist()))]))
+    assert result["meshes"] == 1 and result["targets"] == 52
+    assert not result["shaderMorphs"] and not result["shaderSkin"]
+    gltf = read_glb(cached_avatar_glb().read_bytes())
+    prim = gltf.doc["meshes"][0]["primitives"][0]
+    for w, page in zip(weights, result["morphs"]):
+        for attribute, key in (("POSITION", "position"), ("NORMAL", "normal")):
+            expected = gltf.accessor(prim["attributes"][attribute]).astype(np.float64)
+            for k, target in enumerate(prim["targets"]):
+                if attribute in target:
+                    expected = expected + w[k] * gltf.accessor(target[attribute])
+            assert np.abs(np.reshape(page[key], (-1, 3)) - expected).max() < 1e-5, (attribute, w[:3])
+    skinned = np.reshape(result["skinned"], (-1, 3))
+    three = np.array(result["three"])
+    assert len(three) > 1000 and np.ptp(skinned, axis=0).min() > 0.1  # posed, not collapsed
+    assert np.abs(skinned[three[:, 0].astype(int)] - three[:, 1:]).max() < 1e-5

@@ -12,9 +12,9 @@
 // to onStep(step): the dashboard plays that step's voice then and reports the step displayed (end-to-end latency
 // to the display).
 //
-// Drawing: at most MAX_FPS frames a second, and IDLE_FPS while nothing moves; morph targets are applied on the
-// CPU (CpuMorphs): SwiftShader, the software WebGL of a machine without a GPU, would evaluate all of a mesh's
-// targets for every vertex of every frame, which was half the cost of a frame.
+// Drawing: at most MAX_FPS frames a second, and IDLE_FPS while nothing moves; morph targets and skinning are
+// done on the CPU (CpuDeform): in SwiftShader, the software WebGL of a machine without a GPU, they were about
+// 80 % of a frame's cost.
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 
@@ -188,48 +188,117 @@ export class StepTracker {
   }
 }
 
-/** Morph targets applied on the CPU to the base positions and normals of the vertices they move, when their
- *  weights change; the GPU then draws plain skinned meshes. For the glTF's relative targets only (a mesh with
- *  absolute targets keeps three.js's shader path). */
-class CpuMorphs {
+/** Meshes deformed on the CPU: morph targets (the glTF's relative ones) added to the base positions and normals
+ *  of the vertices they move when their weights change, then linear blend skinning of every vertex each frame,
+ *  as three.js's vertex shader would do it (bindMatrixInverse * sum of weight * bone matrix * bindMatrix). The
+ *  GPU then draws plain meshes: in SwiftShader, fetching the bone matrices from a texture for every vertex and
+ *  evaluating every morph target were about 80 % of a frame's cost. */
+class CpuDeform {
   constructor(root) {
     this.items = [];
+    this._m = new THREE.Matrix4();
     const seen = new Set();
     root.traverse((o) => {
       const g = o.geometry;
-      if (!o.isMesh || !g || seen.has(g) || !g.morphAttributes.position || !g.morphTargetsRelative) return;
-      if (!o.morphTargetInfluences || g.attributes.position.isInterleavedBufferAttribute) return;
+      if (!o.isMesh || !g || seen.has(g) || !g.attributes.position) return;
+      const morphed = g.morphAttributes.position && g.morphTargetsRelative && o.morphTargetInfluences;
+      if (!morphed && !o.isSkinnedMesh) return;
+      const names = ["position", "normal"].filter((n) => g.attributes[n]);
+      if (names.some((n) => g.attributes[n].isInterleavedBufferAttribute)) return;  // left to three.js
       seen.add(g);
-      const names = ["position", "normal"].filter((n) => g.morphAttributes[n] && g.attributes[n] &&
-        !g.attributes[n].isInterleavedBufferAttribute);
-      const targets = g.morphAttributes.position.map((_, i) => sparseTarget(g, names, i));
-      const touched = [...new Set(targets.flatMap((t) => [...t.index]))].sort((a, b) => a - b);
       const base = Object.fromEntries(names.map((n) => [n, Float32Array.from(g.attributes[n].array)]));
-      g.morphAttributes = {};  // three.js now compiles the mesh's shader without morph targets
-      this.items.push({mesh: o, geometry: g, names, targets, touched: Int32Array.from(touched), base, applied: null});
+      const item = {mesh: o, geometry: g, names, base, applied: null, targets: [], touched: new Int32Array(0),
+                    source: Object.fromEntries(names.map((n) => [n, Float32Array.from(base[n])]))};  // morphed
+      if (morphed) {
+        const morphNames = names.filter((n) => g.morphAttributes[n]);
+        item.targets = g.morphAttributes.position.map((_, i) => sparseTarget(g, morphNames, i));
+        item.touched = Int32Array.from([...new Set(item.targets.flatMap((t) => [...t.index]))].sort((a, b) => a - b));
+        g.morphAttributes = {};  // three.js now compiles the mesh's shader without morph targets
+      }
+      if (o.isSkinnedMesh) this.prepareSkin(item);
+      this.items.push(item);
     });
   }
 
-  /** Apply each mesh's current morphTargetInfluences if they changed since the last call. */
-  update() {
-    for (const item of this.items) {
-      const weights = item.mesh.morphTargetInfluences;
-      if (item.applied && weights.every((w, i) => w === item.applied[i])) continue;
-      item.applied = Array.from(weights);
-      for (const name of item.names) {
-        const out = item.geometry.attributes[name], dst = out.array, base = item.base[name];
-        for (const v of item.touched) for (let c = 0; c < 3; c++) dst[3 * v + c] = base[3 * v + c];
-        item.targets.forEach((t, i) => {
-          const w = weights[i], delta = t[name];
-          if (!w || !delta) return;
-          for (let k = 0; k < t.index.length; k++) {
-            const v = 3 * t.index[k];
-            dst[v] += w * delta[3 * k]; dst[v + 1] += w * delta[3 * k + 1]; dst[v + 2] += w * delta[3 * k + 2];
-          }
-        });
-        out.needsUpdate = true;
+  prepareSkin(item) {
+    const g = item.geometry, n = g.attributes.position.count;
+    item.joints = new Uint16Array(4 * n);
+    item.weights = new Float32Array(4 * n);
+    for (let v = 0; v < n; v++) {
+      for (let c = 0; c < 4; c++) {
+        item.joints[4 * v + c] = g.attributes.skinIndex.getComponent(v, c);
+        item.weights[4 * v + c] = g.attributes.skinWeight.getComponent(v, c);  // normalized integers: 0..1
       }
     }
+    item.bones = new Float32Array(16 * item.mesh.skeleton.bones.length);
+    item.mesh.isSkinnedMesh = false;  // drawn as a plain mesh from the positions skinned here
+  }
+
+  /** Pose every mesh: its morphs (if their weights changed), then its skin from the bones' world matrices (call
+   *  after scene.updateMatrixWorld). */
+  update() {
+    for (const item of this.items) {
+      const morphed = this.morph(item);
+      if (item.joints) this.skin(item);
+      else if (morphed) {
+        for (const n of item.names) {
+          item.geometry.attributes[n].array.set(item.source[n]);
+          item.geometry.attributes[n].needsUpdate = true;
+        }
+      }
+    }
+  }
+
+  morph(item) {
+    const weights = item.mesh.morphTargetInfluences;
+    if (!item.targets.length || (item.applied && weights.every((w, i) => w === item.applied[i]))) return false;
+    item.applied = Array.from(weights);
+    for (const name of item.names) {
+      const dst = item.source[name], base = item.base[name];
+      for (const v of item.touched) for (let c = 0; c < 3; c++) dst[3 * v + c] = base[3 * v + c];
+      item.targets.forEach((t, i) => {
+        const w = weights[i], delta = t[name];
+        if (!w || !delta) return;
+        for (let k = 0; k < t.index.length; k++) {
+          const v = 3 * t.index[k];
+          dst[v] += w * delta[3 * k]; dst[v + 1] += w * delta[3 * k + 1]; dst[v + 2] += w * delta[3 * k + 2];
+        }
+      });
+    }
+    return true;
+  }
+
+  skin(item) {
+    const mesh = item.mesh, skeleton = mesh.skeleton, m = this._m, bones = item.bones;
+    skeleton.bones.forEach((bone, b) => {  // in the bind space: bindMatrixInverse * world * boneInverse * bindMatrix
+      m.multiplyMatrices(bone.matrixWorld, skeleton.boneInverses[b]).premultiply(mesh.bindMatrixInverse)
+        .multiply(mesh.bindMatrix);
+      bones.set(m.elements, 16 * b);  // column-major
+    });
+    const joints = item.joints, weights = item.weights, count = joints.length / 4;
+    const normal = item.names.includes("normal");
+    const p0 = item.source.position, p1 = item.geometry.attributes.position.array;
+    const n0 = normal ? item.source.normal : p0, n1 = normal ? item.geometry.attributes.normal.array : null;
+    for (let v = 0; v < count; v++) {
+      const x = p0[3 * v], y = p0[3 * v + 1], z = p0[3 * v + 2];
+      const a = n0[3 * v], b = n0[3 * v + 1], c = n0[3 * v + 2];
+      let px = 0, py = 0, pz = 0, nx = 0, ny = 0, nz = 0;
+      for (let k = 4 * v; k < 4 * v + 4; k++) {
+        const w = weights[k];
+        if (w === 0) continue;
+        const e = 16 * joints[k];
+        px += w * (bones[e] * x + bones[e + 4] * y + bones[e + 8] * z + bones[e + 12]);
+        py += w * (bones[e + 1] * x + bones[e + 5] * y + bones[e + 9] * z + bones[e + 13]);
+        pz += w * (bones[e + 2] * x + bones[e + 6] * y + bones[e + 10] * z + bones[e + 14]);
+        nx += w * (bones[e] * a + bones[e + 4] * b + bones[e + 8] * c);
+        ny += w * (bones[e + 1] * a + bones[e + 5] * b + bones[e + 9] * c);
+        nz += w * (bones[e + 2] * a + bones[e + 6] * b + bones[e + 10] * c);
+      }
+      p1[3 * v] = px; p1[3 * v + 1] = py; p1[3 * v + 2] = pz;
+      if (normal) { n1[3 * v] = nx; n1[3 * v + 1] = ny; n1[3 * v + 2] = nz; }
+    }
+    item.geometry.attributes.position.needsUpdate = true;
+    if (normal) item.geometry.attributes.normal.needsUpdate = true;
   }
 }
 
@@ -316,7 +385,7 @@ export class AvatarPlayer {
                  w: new Float32Array(ARKIT)};
     for (let j = 0; j < JOINTS; j++) this.rest.q[4 * j + 3] = 1;
     this.pose(this.rest, this.rest, 0);  // SMPL-X's rest pose until the motion arrives
-    this.morphs = new CpuMorphs(gltf.scene);
+    this.deform = new CpuDeform(gltf.scene);
     this.stats.ready = true;
   }
 
@@ -410,8 +479,8 @@ export class AvatarPlayer {
     if (key === this.drawnKey && this.settled && since < 1000 / IDLE_FPS) return this.countFps(now, false);
     this.drawnKey = key;
     const start = performance.now();
-    this.morphs.update();
     this.scene.updateMatrixWorld(true);
+    this.deform.update();
     this.track(now);
     this.renderer.render(this.scene, this.camera);
     this.stats.drawMs = performance.now() - start;
@@ -439,8 +508,8 @@ export class AvatarPlayer {
     for (let j = 0; j < JOINTS; j++) axisAngleToQuaternion(axisAngles, 3 * j, q, 4 * j);
     const frame = {q, t: Float32Array.from(trans), w: Float32Array.from(weights)};
     this.pose(frame, frame, 0);
-    this.morphs.update();
     this.scene.updateMatrixWorld(true);
+    this.deform.update();
     const out = {};
     this.spec.bones.forEach((b, k) => { out[b.node] = this.bones[k].object.getWorldPosition(new THREE.Vector3()).toArray(); });
     return out;
