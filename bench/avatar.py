@@ -258,6 +258,7 @@ def summarize(mode, latency, watched, baseline, load_before, load_after) -> dict
         "bus_dropped": sum(c.get("dropped", 0) for c in latency["counters"].values()),
         "dashboard_dropped": watched["dashboard_counters"].get("dropped"),
         "voice_after_picture_ms": {k: v for k, v in percentiles(watched["av_offsets_ms"]).items() if k != "mean"},
+        "audio_output_latency_ms": last["dash"].get("audioOutputLatencyMs"),
         "fps": spread(frame_rates(samples, mode)),
         "page_fps": spread(page_fps),
         "page_last": {**last["dash"], **{f"avatar.{k}": v for k, v in last["avatar"].items()}},
