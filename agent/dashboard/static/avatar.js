@@ -477,6 +477,7 @@ export class AvatarPlayer {
     const pos = this.advance(now);
     const key = pos === null ? "rest" : String(pos);
     if (key === this.drawnKey && this.settled && since < 1000 / IDLE_FPS) return this.countFps(now, false);
+    const moving = key !== this.drawnKey && this.drawnKey !== "rest" && key !== "rest";
     this.drawnKey = key;
     const start = performance.now();
     this.scene.updateMatrixWorld(true);
@@ -484,7 +485,7 @@ export class AvatarPlayer {
     this.track(now);
     this.renderer.render(this.scene, this.camera);
     this.stats.drawMs = performance.now() - start;
-    if (this.lastDraw !== null) this.stats.maxGapMs = Math.max(this.stats.maxGapMs, since);
+    if (moving && since < Infinity) this.stats.maxGapMs = Math.max(this.stats.maxGapMs, since);  // not idle
     this.lastDraw = now;
     this.stats.draws += 1;
     if (pos !== null) this.report(pos);
