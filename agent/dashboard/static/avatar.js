@@ -197,15 +197,15 @@ class CpuDeform {
   constructor(root) {
     this.items = [];
     this._m = new THREE.Matrix4();
-    const seen = new Set();
+    const users = new Map();  // geometry -> meshes drawing it: a shared one is left to three.js
+    root.traverse((o) => { if (o.isMesh && o.geometry) users.set(o.geometry, (users.get(o.geometry) || 0) + 1); });
     root.traverse((o) => {
       const g = o.geometry;
-      if (!o.isMesh || !g || seen.has(g) || !g.attributes.position) return;
+      if (!o.isMesh || !g || users.get(g) > 1 || !g.attributes.position) return;
       const morphed = g.morphAttributes.position && g.morphTargetsRelative && o.morphTargetInfluences;
       if (!morphed && !o.isSkinnedMesh) return;
       const names = ["position", "normal"].filter((n) => g.attributes[n]);
       if (names.some((n) => g.attributes[n].isInterleavedBufferAttribute)) return;  // left to three.js
-      seen.add(g);
       const base = Object.fromEntries(names.map((n) => [n, Float32Array.from(g.attributes[n].array)]));
       const item = {mesh: o, geometry: g, names, base, applied: null, targets: [], touched: new Int32Array(0),
                     source: Object.fromEntries(names.map((n) => [n, Float32Array.from(base[n])]))};  // morphed
