@@ -6,8 +6,8 @@
 // is a high quantile of the recent steps' arrival times (a jitter buffer, as a VoIP receiver's), so a step's first
 // frame is drawn as soon as nearly every step has arrived, not a fixed number of frames behind the newest. The
 // playhead speeds up or slows down a little to follow that delay, holds on the newest frame when a step is late,
-// never moves more than a step's length in one drawn frame (so no step is jumped over) and jumps only when it
-// falls far behind. Between the two 25 fps frames around it, it interpolates (slerp of the joints' rotations,
+// never moves 3 frames or more in one drawn frame (so no step is jumped over) and jumps only when it falls far
+// behind. Between the two 25 fps frames around it, it interpolates (slerp of the joints' rotations,
 // linear translation and morph weights). Once a frame is drawn, each step it shows for the first time is passed
 // to onStep(step): the dashboard plays that step's voice then and reports the step displayed (end-to-end latency
 // to the display).
