@@ -193,3 +193,140 @@ def test_browser_mode_without_an_mp4_runs_no_render_stage():
     assert stages() == ("io", "dialogue", "gesture", "render")  # server mode draws the frames
     assert stages("render.mode=browser") == ("io", "dialogue", "gesture")  # the page draws them
     assert stages("render.mode=browser", "render.mp4_path=out.mp4") == ("io", "dialogue", "gesture", "render")
+
+
+# The page's clock and step accounting (avatar.js's Playout and StepTracker) driven on a simulated timeline in the
+# real page: steps of 2 frames produced every 80 ms arrive after ARRIVAL(step, random) ms and are drawn every
+# INTERVAL(random) ms; MISSING steps never arrive. No real time passes.
+PLAYOUT_SIM = """(async () => {
+  const m = await import('/static/avatar.js');
+  const rng = ((seed) => () => (seed = (seed * 16807) % 2147483647) / 2147483647)(7);
+  const arrivalMs = ARRIVAL, intervalMs = INTERVAL, steps = STEPS, missing = new Set(MISSING);
+  const playout = new m.Playout(), tracker = new m.StepTracker();
+  const arrivals = [];
+  let previous = 0;  // the bus delivers in order: a step never overtakes the one before it
+  for (let s = 0; s < steps; s++) {
+    previous = Math.max(previous, 80 * s + arrivalMs(s, rng));
+    if (!missing.has(s)) arrivals.push([s, previous]);
+  }
+  const received = new Set(), reached = {}, shown = [], skipped = [];
+  let next = 0;
+  for (let now = 0; now < 80 * steps + 3000; now += intervalMs(rng)) {
+    while (next < arrivals.length && arrivals[next][1] <= now) {
+      const [s, t] = arrivals[next++];
+      playout.arrive(2 * s, 2, t);
+      received.add(2 * s); received.add(2 * s + 1);
+    }
+    const pos = playout.advance(now);
+    if (pos === null) continue;
+    for (const {step, shown: was} of tracker.drawn(pos, (f) => received.has(f))) {
+      (was ? shown : skipped).push(step);
+      reached[step] = now - 80 * step;  // drawn this long after the step's place on the 80 ms clock
+    }
+  }
+  const display = Object.values(reached).sort((a, b) => a - b);
+  const q = (p) => display[Math.min(display.length - 1, Math.floor(p * display.length))];
+  return {shown: shown.length, skipped, p50: q(0.5), p95: q(0.95), max: q(1), stats: playout.stats};
+})()"""
+JITTER = "(s, r) => 40 + 30 * r() + (s % 50 === 7 ? 60 : 0)"  # 40-70 ms, and one step of 100-130 ms each 4 s
+SIMULATIONS = {
+    # drawn at 60, 30, 20 and 13 fps (each interval +-30 %): no step skipped, each drawn soon after it arrives
+    **{f"{fps} fps": (JITTER, f"(r) => {1000 / fps:.3f} * (0.7 + 0.6 * r())", []) for fps in (60, 30, 20, 13)},
+    # the pipeline stalls for 600 ms every 10 s, then its steps arrive at once: caught up, none skipped
+    "stalls": ("(s, r) => 50 + 20 * r() + (s % 125 === 110 ? 600 : 0)", "(r) => 33", []),
+    # a stall of 3 s: the playhead jumps, the steps it jumped over are counted as not shown
+    "long stall": ("(s, r) => 50 + (s === 200 ? 3000 : 0)", "(r) => 33", []),
+    # steps whose frames never arrived are not shown, whatever the playhead did
+    "lost steps": (JITTER, "(r) => 33", [300, 301, 450]),
+}
+
+
+async def _in_a_page(scripts: list[str]) -> list:
+    """Evaluate scripts in the dashboard's page (its server alone, no run)."""
+    from agent.dashboard.events import hello_event
+    from agent.dashboard.server import Hub, make_app, start_server
+
+    def snapshot():
+        return [hello_event(("io",), True, "s", False, render_mode="browser")]
+
+    runner, port = await start_server(make_app(Hub(snapshot, lambda _c: None)), "127.0.0.1", 0)
+    try:
+        async with HeadlessChromium(f"http://127.0.0.1:{port}/", 800, 600) as page:
+            await page.wait_for("window.ecasAvatar && window.ecasAvatar.ready", timeout_s=120)
+            return [await page.evaluate(s) for s in scripts]
+    finally:
+        await runner.cleanup()
+
+
+@needs_browser
+def test_the_pages_playout_shows_every_step_soon_after_it_arrives():
+    scripts = [
+        PLAYOUT_SIM.replace("ARRIVAL", a).replace("INTERVAL", i).replace("STEPS", "600").replace("MISSING", str(m))
+        for a, i, m in SIMULATIONS.values()
+    ]
+    sims = dict(zip(SIMULATIONS, asyncio.run(_in_a_page(scripts))))
+    print(json.dumps(sims))
+    for fps in (60, 30, 20, 13):
+        sim = sims[f"{fps} fps"]
+        assert sim["skipped"] == [] and sim["shown"] == 600 and sim["stats"]["jumps"] == 0, (fps, sim)
+        # the delay follows the arrivals' 90 % quantile (about 67 ms) plus the margin: a step is drawn at the
+        # first display tick after that (1.3 draw intervals at most)
+        assert 60 <= sim["p50"] <= 72 + 1300 / fps and sim["p95"] <= 80 + 1300 / fps, (fps, sim)
+    stalls = sims["stalls"]
+    assert stalls["skipped"] == [] and stalls["shown"] == 600 and stalls["stats"]["holds"] >= 4, stalls
+    assert stalls["p50"] < 120, stalls  # between the stalls the delay comes back near the arrivals'
+    long_stall = sims["long stall"]
+    assert long_stall["stats"]["jumps"] == 1 and 0 < len(long_stall["skipped"]) <= 38, long_stall  # of 38 late
+    assert long_stall["shown"] + len(long_stall["skipped"]) == 600
+    lost = sims["lost steps"]
+    assert lost["skipped"] == [300, 301, 450] and lost["shown"] == 597, lost
+
+
+CPU_DEFORM = """(() => {
+  const player = window.ecasAvatar.player, items = player.deform.items, {mesh, geometry} = items[0];
+  const morphs = [];
+  for (const weights of WEIGHTS) {  // one set after another: each from the base, not from the last
+    weights.forEach((w, i) => { mesh.morphTargetInfluences[i] = w; });
+    player.deform.update();
+    morphs.push({position: Array.from(items[0].source.position), normal: Array.from(items[0].source.normal)});
+  }
+  player.poseForTest(POSE, [0.1, 1.25, 0.2], new Array(52).fill(0));  // skins the mesh (and its morphs)
+  const skinned = Array.from(geometry.attributes.position.array);
+  const v = new mesh.position.constructor(), three = [];
+  for (let i = 0; i < geometry.attributes.position.count; i += 7) {  // three.js's own CPU skinning
+    v.fromArray(items[0].source.position, 3 * i);
+    three.push([i, ...mesh.applyBoneTransform(i, v).toArray()]);
+  }
+  return {meshes: items.length, shaderMorphs: geometry.morphAttributes.position !== undefined,
+          shaderSkin: mesh.isSkinnedMesh, targets: mesh.morphTargetInfluences.length, morphs, skinned, three};
+})()"""
+
+
+@needs_browser
+def test_the_pages_cpu_morphs_and_skinning_equal_gltfs_and_three_js():
+    """The page morphs and skins the avatar on the CPU (not in SwiftShader's vertex shader): the morphed positions
+    and normals equal glTF's sum of weighted targets computed here from the file, and the skinned positions equal
+    three.js's SkinnedMesh.applyBoneTransform (what its shader computes) for a random pose."""
+    from agent.dashboard.avatar_file import cached_avatar_glb
+    from render.gltf import read_glb
+
+    rng = np.random.default_rng(3)
+    weights = [rng.uniform(0, 1, 52) * (rng.uniform(size=52) < 0.5), np.zeros(52), rng.uniform(0, 1, 52)]
+    pose = rng.normal(0, 0.4, 165)
+    script = CPU_DEFORM.replace("WEIGHTS", json.dumps([w.tolist() for w in weights]))
+    (result,) = asyncio.run(_in_a_page([script.replace("POSE", json.dumps(pose.tolist()))]))
+    assert result["meshes"] == 1 and result["targets"] == 52
+    assert not result["shaderMorphs"] and not result["shaderSkin"]
+    gltf = read_glb(cached_avatar_glb().read_bytes())
+    prim = gltf.doc["meshes"][0]["primitives"][0]
+    for w, page in zip(weights, result["morphs"]):
+        for attribute, key in (("POSITION", "position"), ("NORMAL", "normal")):
+            expected = gltf.accessor(prim["attributes"][attribute]).astype(np.float64)
+            for k, target in enumerate(prim["targets"]):
+                if attribute in target:
+                    expected = expected + w[k] * gltf.accessor(target[attribute])
+            assert np.abs(np.reshape(page[key], (-1, 3)) - expected).max() < 1e-5, (attribute, w[:3])
+    skinned = np.reshape(result["skinned"], (-1, 3))
+    three = np.array(result["three"])
+    assert len(three) > 1000 and np.ptp(skinned, axis=0).min() > 0.1  # posed, not collapsed
+    assert np.abs(skinned[three[:, 0].astype(int)] - three[:, 1:]).max() < 1e-5

@@ -17,6 +17,7 @@ import contextlib
 import itertools
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -84,6 +85,7 @@ class HeadlessChromium:
             ],
             stdout=subprocess.DEVNULL,
             stderr=open(self.profile / "stderr.log", "wb"),
+            start_new_session=True,  # its own process group: its renderer and GPU processes go with it
         )
         self.session = aiohttp.ClientSession()
         try:
@@ -102,18 +104,30 @@ class HeadlessChromium:
         return self
 
     async def __aexit__(self, *exc) -> None:
-        if getattr(self, "ws", None) is not None:
-            await self._close_browser()
-            await self.ws.close()
-        await self.session.close()
+        try:
+            if getattr(self, "ws", None) is not None:
+                await self._close_browser()
+                await self.ws.close()
+            await self.session.close()
+        finally:
+            self.kill()
+            shutil.rmtree(self.profile, ignore_errors=True)
+
+    def kill(self) -> None:
+        """End the browser and every process of its group (SIGTERM, then SIGKILL after CLOSE_TIMEOUT_S)."""
         if self.process.poll() is None:
             self.process.terminate()
         try:
-            self.process.wait(5)
+            self.process.wait(CLOSE_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             self.process.kill()
             self.process.wait()
-        shutil.rmtree(self.profile, ignore_errors=True)
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.process.pid, signal.SIGKILL)  # children left behind by a browser that was killed
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
 
     async def _close_browser(self) -> None:
         """Ask Chromium to quit: unlike SIGTERM, it then removes its temporary directory (singleton socket)."""

@@ -213,7 +213,24 @@ function playAudioUpTo(step) {
     src.start(at);
     audio.playhead = at + buffer.duration;
     audio.played = s; dash.audioSteps += 1; dash.audioLastStep = s;
+    if (s === step) measureAvOffset(at);
   }
+}
+
+// The voice's offset from the picture (ms; > 0: the voice comes later): when the step being shown now starts to
+// sound, by the audio clock's own mapping of its output to the page's clock. It includes the audio output's own
+// latency (audioOutputLatencyMs, as the AudioContext reports it).
+dash.avOffsetsMs = [];
+const AV_OFFSETS_KEPT = 1000;
+
+function measureAvOffset(atS) {
+  const out = audio.ctx.getOutputTimestamp();
+  if (!out || !out.performanceTime) return;
+  const heard = out.performanceTime + 1000 * (atS - out.contextTime);
+  dash.avOffsetMs = Math.round(heard - performance.now());
+  dash.audioOutputLatencyMs = Math.round(1000 * ((audio.ctx.outputLatency || 0) + (audio.ctx.baseLatency || 0)));
+  dash.avOffsetsMs.push(dash.avOffsetMs);
+  if (dash.avOffsetsMs.length > AV_OFFSETS_KEPT) dash.avOffsetsMs.shift();
 }
 
 // ---- the browser's microphone as the user's voice (launch.py --browser-mic) ------------------------------
