@@ -75,6 +75,7 @@ function onHello(e) {
 
 function onRun(e) {
   dash.phase = e.phase;
+  if (e.phase === "stopped") silenceVoice();
   waitForStart = e.wait_for_start;
   const label = {ready: waitForStart ? "ready: press Start" : "ready"}[e.phase] || e.phase;
   $("phase").textContent = label;
@@ -85,7 +86,7 @@ function onRun(e) {
 }
 
 $("start").onclick = () => { send({type: "control", command: "start"}); $("start").disabled = true; ensureAudio(); };
-$("stop").onclick = () => { send({type: "control", command: "stop"}); $("stop").disabled = true; };
+$("stop").onclick = () => { send({type: "control", command: "stop"}); $("stop").disabled = true; silenceVoice(); };
 $("sound").onchange = (ev) => {
   if (ev.target.checked) ensureAudio();
   send({type: "audio", enabled: ev.target.checked});
@@ -122,7 +123,7 @@ function showFrames() {
   dash.frames += 1; dash.lastFrameStep = step;
   reportDisplayed(step);
   $("frameinfo").textContent = `step ${step} · frame ${index} · t = ${(step * STEP_S).toFixed(2)} s`;
-  playAudioUpTo(step);
+  voiceOnShown(step);
 }
 
 // ---- the avatar drawn here (render.mode: browser; static/avatar.js) ---------------------------------------
@@ -144,7 +145,7 @@ function startAvatar() {
 
 function onAvatarStep(step) {
   $("frameinfo").textContent = `step ${step} · drawn here · ${avatar.fps.toFixed(0)} fps`;
-  playAudioUpTo(step);
+  voiceOnShown(step);
   reportDisplayed(step);
 }
 
@@ -176,11 +177,77 @@ function reportDisplayed(step) {
   dash.displayReports += 1;
 }
 
-// ---- the agent's voice, synced to the video by step ------------------------------------------------------
-// A step's audio is held until that step's frame is on screen, then scheduled right after the audio
-// already playing; a step whose frames were dropped plays with the next frame shown.
-const audio = {ctx: null, pending: new Map(), playhead: 0, played: -1};
-const MAX_AHEAD_S = 0.3;
+// ---- the agent's voice, on the picture's clock -----------------------------------------------------------
+// A step's audio is scheduled ahead, to be heard when its step is shown. When is learnt from the steps shown so
+// far: a step is shown STEP_MS after the one before it plus the display's jitter, so the time it is shown, minus
+// STEP_MS times its index, is nearly constant; DisplayClock keeps a high quantile of that over the last steps
+// (the voice had rather be a little late than early: lip-sync is noticed at 45 ms early, 125 ms late). The audio
+// clock's own mapping to the page's clock (getOutputTimestamp: when a sample is heard, output latency included)
+// turns that time into the audio context's time. VoiceScheduler then places each chunk: right after the one
+// before it while that stays within the window around its target (the voice continuous: the chunks abut), else
+// at its target, spliced with a short cross-fade (a late chunk starts part-way, its beginning dropped; one whose
+// time has passed with its picture is skipped).
+const STEP_MS = 1000 * STEP_S;
+const DISPLAY_STEPS_KEPT = 50;      // 4 s of shown steps
+const DISPLAY_QUANTILE = 0.75;
+const VOICE_EARLY_S = 0.015;        // a chunk abuts the one before it while within this early ...
+const VOICE_LATE_S = 0.025;         // ... or this late of its target; beyond, it is spliced to its target
+const VOICE_FADE_S = 0.004;         // a splice's cross-fade
+const VOICE_MARGIN_S = 0.01;        // the soonest a chunk is started after the audio clock's now
+const VOICE_LOOKAHEAD_S = 0.15;     // chunks are scheduled this long before they are heard, no earlier
+
+/** When steps are shown, from the ones shown so far (page ms). Pure arithmetic: tests drive it with any timeline. */
+class DisplayClock {
+  constructor() { this.offsets = []; this.offsetMs = null; }
+
+  /** Step `step` was shown at `nowMs`. A new stream (an offset seconds away) starts afresh. */
+  shown(step, nowMs) {
+    const offset = nowMs - STEP_MS * step;
+    if (this.offsetMs !== null && Math.abs(offset - this.offsetMs) > 2000) this.offsets = [];
+    this.offsets.push(offset);
+    if (this.offsets.length > DISPLAY_STEPS_KEPT) this.offsets.shift();
+    const sorted = [...this.offsets].sort((a, b) => a - b);
+    this.offsetMs = sorted[Math.min(sorted.length - 1, Math.floor(DISPLAY_QUANTILE * sorted.length))];
+  }
+
+  /** When step `step` will be shown (page ms), or null before any step was shown. */
+  at(step) { return this.offsetMs === null ? null : STEP_MS * step + this.offsetMs; }
+}
+
+/** Where each chunk of the voice starts on the audio clock (s). Pure arithmetic, as DisplayClock. */
+class VoiceScheduler {
+  constructor() { this.stats = {abutted: 0, spliced: 0, skipped: 0}; this.reset(); }
+
+  /** Forget the chunks placed (the voice was silenced): the next one is placed at its target. */
+  reset() { this.playhead = 0; this.lastStep = -Infinity; }
+
+  /** Step `step`'s chunk of `durationS`, due to start at `targetS`, the audio clock at `nowS`: null (skipped:
+   *  its time passed) or {at, end, offsetS (its first offsetS seconds dropped), abuts (it starts where the chunk
+   *  before it ends; else it fades in, and a chunk still playing fades out where it overlaps or at its end)}. */
+  place(step, durationS, targetS, nowS) {
+    const earliest = nowS + VOICE_MARGIN_S;
+    const error = this.playhead - targetS;  // > 0: after the chunk before it, this one would be late
+    if (step === this.lastStep + 1 && this.playhead >= earliest && error >= -VOICE_EARLY_S && error <= VOICE_LATE_S) {
+      this.stats.abutted += 1;
+      return this.commit(step, {at: this.playhead, offsetS: 0, abuts: true}, durationS);
+    }
+    const at = Math.max(targetS, earliest), offsetS = at - targetS;
+    if (offsetS > durationS - VOICE_FADE_S) { this.stats.skipped += 1; return null; }
+    this.stats.spliced += 1;
+    return this.commit(step, {at, offsetS, abuts: false}, durationS);
+  }
+
+  commit(step, placed, durationS) {
+    this.playhead = placed.at + durationS - placed.offsetS;
+    this.lastStep = step;
+    return {...placed, end: this.playhead};
+  }
+}
+
+const audio = {ctx: null, pending: new Map(), display: new DisplayClock(), scheduler: new VoiceScheduler(),
+               scheduled: new Map(), last: null, sources: new Set(), shownStep: -1};
+dash.voice = audio.scheduler.stats;
+dash.DisplayClock = DisplayClock; dash.VoiceScheduler = VoiceScheduler;  // for the tests
 
 function ensureAudio() {
   if (!audio.ctx) audio.ctx = new AudioContext({sampleRate: 24000});
@@ -192,29 +259,82 @@ function ensureAudio() {
 function onAudio(step, pcm) {
   if (!audio.ctx) return;
   audio.pending.set(step, pcm);
-  for (const s of audio.pending.keys()) if (s < step - 50) audio.pending.delete(s);
+  for (const s of audio.pending.keys()) if (s < step - 50) audio.pending.delete(s);  // never shown: dropped
+  scheduleVoice();
 }
 
-function playAudioUpTo(step) {
-  if (!audio.ctx) return;
-  const steps = [...audio.pending.keys()].filter((s) => s <= step).sort((a, b) => a - b);
-  for (const s of steps) {
-    const pcm = audio.pending.get(s);
-    audio.pending.delete(s);
-    if (s <= audio.played || s < step - 3) continue;  // too old: skipping keeps the voice on the picture
-    const now = audio.ctx.currentTime;
-    if (audio.playhead - now > MAX_AHEAD_S) continue;
-    const buffer = audio.ctx.createBuffer(1, pcm.length, 24000);
-    const data = buffer.getChannelData(0);
-    for (let i = 0; i < pcm.length; i++) data[i] = pcm[i] / 32768;
-    const src = audio.ctx.createBufferSource();
-    src.buffer = buffer; src.connect(audio.ctx.destination);
-    const at = Math.max(now + 0.01, audio.playhead);
-    src.start(at);
-    audio.playhead = at + buffer.duration;
-    audio.played = s; dash.audioSteps += 1; dash.audioLastStep = s;
-    if (s === step) measureAvOffset(at);
+/** The audio clock's time (s) at which a sample is heard at page time `ms`, by the output's own timestamp. */
+function audioTimeAt(ms) {
+  const out = audio.ctx.getOutputTimestamp();
+  if (!out || !out.performanceTime) return null;
+  return out.contextTime + (ms - out.performanceTime) / 1000;
+}
+
+/** The pending chunks (step -> samples) whose time is near, oldest first, taken out of `pending` and placed:
+ *  [{step, pcm, placed}] (placed null: skipped). `shownAtMs(step)` and `audioTimeAt(ms)` give a step's time on
+ *  the page's and then the audio clock (null: not known yet); `nowS` is the audio clock's now. */
+function dueChunks(pending, scheduler, shownAtMs, audioTimeAt, nowS) {
+  const out = [];
+  for (const step of [...pending.keys()].sort((a, b) => a - b)) {
+    const ms = shownAtMs(step), target = ms === null ? null : audioTimeAt(ms);
+    if (target === null || target - nowS > VOICE_LOOKAHEAD_S) break;  // later (in order: so are the next ones)
+    const pcm = pending.get(step);
+    pending.delete(step);
+    out.push({step, pcm, placed: scheduler.place(step, pcm.length / 24000, target, nowS)});
   }
+  return out;
+}
+dash.dueChunks = dueChunks;  // for the tests
+
+/** Schedule the chunks whose time is near (on each chunk received, step shown and 5 ms tick). */
+function scheduleVoice() {
+  if (!audio.ctx || !audio.pending.size) return;
+  const due = dueChunks(audio.pending, audio.scheduler, (s) => audio.display.at(s), audioTimeAt, audio.ctx.currentTime);
+  for (const {step, pcm, placed} of due) if (placed) playChunk(step, pcm, placed);
+}
+
+function playChunk(step, pcm, {at, end, offsetS, abuts}) {
+  const ctx = audio.ctx, buffer = ctx.createBuffer(1, pcm.length, 24000), data = buffer.getChannelData(0);
+  for (let i = 0; i < pcm.length; i++) data[i] = pcm[i] / 32768;
+  const src = ctx.createBufferSource(), gain = ctx.createGain();
+  src.buffer = buffer;
+  src.connect(gain).connect(ctx.destination);
+  const last = audio.last;
+  if (!abuts) {  // fade this one in; the one before out, where it overlaps this one or where it ends
+    gain.gain.setValueAtTime(0, at);
+    gain.gain.linearRampToValueAtTime(1, at + VOICE_FADE_S);
+  }
+  if (!abuts && last && last.end > ctx.currentTime) {
+    const from = Math.max(ctx.currentTime, Math.min(at, last.end - VOICE_FADE_S));
+    last.gain.gain.setValueAtTime(1, from);
+    last.gain.gain.linearRampToValueAtTime(0, from + VOICE_FADE_S);
+    if (at < last.end) last.src.stop(from + VOICE_FADE_S);
+  }
+  src.start(at, offsetS);
+  audio.last = {src, gain, end};
+  audio.sources.add(src);
+  src.onended = () => audio.sources.delete(src);
+  audio.scheduled.set(step, at - offsetS);  // when the step's own start is heard
+  if (audio.scheduled.size > 100) audio.scheduled.delete(audio.scheduled.keys().next().value);
+  dash.audioSteps += 1; dash.audioLastStep = step;
+}
+
+/** Silence the voice now (the run stopped): the chunks scheduled ahead and the ones pending. */
+function silenceVoice() {
+  for (const src of audio.sources) src.stop();
+  audio.sources.clear(); audio.pending.clear(); audio.last = null;
+  audio.scheduler.reset();
+}
+
+/** Step `step` is shown now: it teaches the display clock, and its voice's offset is measured. */
+function voiceOnShown(step) {
+  if (step <= audio.shownStep && step >= audio.shownStep - 50) return;  // the step's second frame (server mode)
+  if (step < audio.shownStep) audio.scheduled.clear();  // a new run: its steps start again
+  audio.shownStep = step;
+  audio.display.shown(step, performance.now());
+  if (!audio.ctx) return;
+  if (audio.scheduled.has(step)) measureAvOffset(audio.scheduled.get(step));
+  scheduleVoice();
 }
 
 // The voice's offset from the picture (ms; > 0: the voice comes later): when the step being shown now starts to
@@ -434,7 +554,7 @@ function onCounters(e) {
 }
 
 // ---- main -----------------------------------------------------------------------------------------------
-setInterval(showFrames, 5);
+setInterval(() => { showFrames(); scheduleVoice(); }, 5);
 setInterval(probeClock, 1000);
 setInterval(() => {
   if (chartDirty) { chartDirty = false; drawChart(); }
