@@ -1,5 +1,4 @@
-"""Benchmark the avatar end to end: one live run per render mode on the real recording, watched by headless
-Chromium, side by side.
+"""Benchmark the avatar end to end: one live run per render mode on the real clip, watched by headless Chromium.
 
     python -m bench.avatar --json --out runs/bench_avatar          # both modes, the whole clip
     python -m bench.avatar --modes browser --seconds 30            # one mode, stopped after 30 s
