@@ -38,6 +38,7 @@ import numpy as np
 from agent.dashboard.browser import HeadlessChromium, find_chromium
 from agent.latency import percentiles
 from bench.machine import BaselineMatmul, machine_report
+from bench.procfs import PARENT_PID, SYSTEM_TICKS, USER_TICKS, process_stats
 from ecas.core.paths import data_root
 from ecas.core.threads import limit_threads
 
@@ -80,14 +81,9 @@ class ProcessTreeCpu:
     def sample(self) -> float:
         children: dict[int, list[int]] = {}
         ticks: dict[int, int] = {}
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                fields = stat.read_text().rsplit(")", 1)[1].split()
-            except (OSError, IndexError):
-                continue
-            pid = int(stat.parent.name)
-            children.setdefault(int(fields[1]), []).append(pid)  # fields[1]: the parent's pid
-            ticks[pid] = int(fields[11]) + int(fields[12])  # utime + stime
+        for pid, fields in process_stats():
+            children.setdefault(int(fields[PARENT_PID]), []).append(pid)
+            ticks[pid] = int(fields[USER_TICKS]) + int(fields[SYSTEM_TICKS])
         todo = [self.root]
         while todo:
             pid = todo.pop()

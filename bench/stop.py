@@ -26,24 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.procfs import session_pids
+
 ROOT = Path(__file__).resolve().parents[1]
 BUSY_LOOP = "while 1: pass"
 POLL_S = 0.005
 START_TIMEOUT_S = 180.0
 STOP_TIMEOUT_S = 60.0
-
-
-def session_pids(sid: int) -> list[int]:
-    """Live (not zombie) processes whose session id is `sid`."""
-    pids = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (FileNotFoundError, ProcessLookupError, IndexError):
-            continue
-        if int(fields[3]) == sid and fields[0] != "Z":  # fields[3]: the session id
-            pids.append(int(stat.parent.name))
-    return pids
 
 
 def launch_command(root: Path, report: Path, offline: bool, extra: list[str]) -> list[str]:

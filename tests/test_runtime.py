@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import soundfile as sf
 
+from bench.procfs import session_pids
 from ecas.core.timing import SAMPLE_RATE_HZ, STEP_SAMPLES
 from tests import components
 from tests.components import TEST_STAGES
@@ -81,13 +82,11 @@ def leftovers(sid: int, grace_s: float = 3.0) -> list[str]:
 def session_processes(sid: int) -> list[str]:
     """Command lines of the processes still alive in the run's session (launch.py and every stage share it)."""
     alive = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
+    for pid in session_pids(sid):
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (FileNotFoundError, ProcessLookupError, IndexError):
-            continue
-        if int(fields[3]) == sid and fields[0] != "Z":  # fields[3] is the session id
-            alive.append((stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode())
+            alive.append(Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode())
+        except OSError:
+            continue  # it exited meanwhile
     return alive
 
 

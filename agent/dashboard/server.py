@@ -46,8 +46,8 @@ class Page:
         self.ws = ws
         self.events: collections.deque[str] = collections.deque()
         self.audio: collections.deque[bytes] = collections.deque(maxlen=MAX_PENDING_AUDIO)
-        self.frames: collections.deque[bytes] = collections.deque()
-        self.motion: collections.deque[bytes] = collections.deque()
+        self.frames: collections.deque[bytes] = collections.deque(maxlen=MAX_PENDING_FRAMES)
+        self.motion: collections.deque[bytes] = collections.deque(maxlen=MAX_PENDING_MOTION)
         self.wants_audio = False
         self.wants_motion = False
         self.skipped_frames = 0
@@ -65,18 +65,17 @@ class Page:
         self.wake.set()
 
     def push_frame(self, data: bytes) -> None:
-        if len(self.frames) >= MAX_PENDING_FRAMES:
-            self.frames.popleft()
-            self.skipped_frames += 1
-        self.frames.append(data)
-        self.wake.set()
+        self.skipped_frames += self._push_bounded(self.frames, data)
 
     def push_motion(self, data: bytes) -> None:
-        if len(self.motion) >= MAX_PENDING_MOTION:
-            self.motion.popleft()
-            self.skipped_motion += 1
-        self.motion.append(data)
+        self.skipped_motion += self._push_bounded(self.motion, data)
+
+    def _push_bounded(self, queue: collections.deque[bytes], data: bytes) -> int:
+        """Append to a queue with a maxlen; 1 if its oldest message was dropped to make room, else 0."""
+        dropped = int(len(queue) == queue.maxlen)
+        queue.append(data)
         self.wake.set()
+        return dropped
 
     def push_audio(self, data: bytes) -> None:
         if self.wants_audio:
