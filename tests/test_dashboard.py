@@ -40,7 +40,7 @@ from agent.dashboard.events import (
 )
 from agent.dashboard.mic import MAX_BUFFER_STEPS, PRIME_STEPS, BrowserMicSource
 from agent.dashboard.process import page_url
-from agent.dashboard.server import Hub, make_app, start_server
+from agent.dashboard.server import MAX_PENDING_FRAMES, MAX_PENDING_MOTION, Hub, Page, make_app, start_server
 from agent.sections import load_app_config
 from ecas.core.bus import Publisher
 from ecas.core.config import ConfigError, build_dataclass
@@ -797,3 +797,14 @@ def test_the_pages_microphone_reaches_the_io_stage_over_the_bus(tmp_path):
     assert code == 0, output
     assert io["mic_received_samples"] >= wanted and io["mic_lost_chunks"] == 0 and io["mic_bad_chunks"] == 0
     assert leftovers(proc.pid) == []
+
+
+def test_a_page_behind_keeps_the_newest_frames_and_motion_and_counts_what_it_skipped():
+    page = Page(ws=None)  # nothing is sent: only its queues are filled
+    for i in range(MAX_PENDING_FRAMES + 3):
+        page.push_frame(bytes([i]))
+    for i in range(MAX_PENDING_MOTION + 5):
+        page.push_motion(bytes([i]))
+    assert page.skipped_frames == 3 and list(page.frames) == [bytes([i]) for i in range(3, MAX_PENDING_FRAMES + 3)]
+    assert page.skipped_motion == 5 and list(page.motion)[0] == bytes([5]) and len(page.motion) == MAX_PENDING_MOTION
+    assert page.wake.is_set()
